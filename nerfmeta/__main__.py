@@ -1,0 +1,3 @@
+from nerfmeta.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,129 @@
+"""Typed scene data.
+
+Conventions used everywhere in nerfmeta:
+
+- Poses are camera-to-world 4x4 matrices in the OpenGL/Blender convention: camera x points
+  right, y up, and the camera looks along its -z axis.
+- Intrinsics are ``(fx, fy, cx, cy)`` in pixels, with pixel ``(i, j)`` (column, row) centred at
+  ``(i + 0.5, j + 0.5)``.
+- Images are float32 RGB in [0, 1], already composited on ``background``.
+- ``near``/``far`` are distances along normalised ray directions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A set of posed images of one scene, with its splits.
+
+    Attributes:
+        images: (n_views, H, W, 3) float32 RGB in [0, 1], composited on ``background``.
+        poses: (n_views, 4, 4) float32 camera-to-world, OpenGL convention.
+        intrinsics: (n_views, 4) float32 ``(fx, fy, cx, cy)`` in pixels.
+        near: distance to start rays at.
+        far: distance to end rays at.
+        bounds: (2, 3) float32 axis-aligned box ``[min_xyz, max_xyz]`` that holds the content.
+        splits: split name -> tuple of view indices; ``train`` and ``test`` always present.
+        holdout: how the test split was chosen, e.g. ``"from file"`` or ``"every 8th view"``.
+        source: the folder or file the scene was read from.
+        format: the name of the parser that read it.
+        category: the scene's category when known (generated collections record it).
+        background: RGB the alpha channel was composited on, None for opaque images.
+        alphas: (n_views, H, W) float32 alpha in [0, 1] when the images had one, else None.
+        image_names: one name per view, for reports.
+        downscale: the factor the images were reduced by when read.
+    """
+
+    images: torch.Tensor
+    poses: torch.Tensor
+    intrinsics: torch.Tensor
+    near: float
+    far: float
+    bounds: torch.Tensor
+    splits: dict[str, tuple[int, ...]]
+    holdout: str
+    source: Path
+    format: str
+    category: str | None = None
+    background: tuple[float, float, float] | None = (1.0, 1.0, 1.0)
+    alphas: torch.Tensor | None = None
+    image_names: tuple[str, ...] = field(default_factory=tuple)
+    downscale: float = 1.0
+
+    @property
+    def n_views(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    def split_indices(self, split: str) -> torch.Tensor:
+        """View indices of ``split`` as a LongTensor (empty if the split is absent)."""
+        return torch.tensor(self.splits.get(split, ()), dtype=torch.long)
+
+    def subset(self, split: str) -> "Scene":
+        """The views of one split as a scene of their own (splits renumbered)."""
+        idx = self.split_indices(split)
+        names = tuple(self.image_names[i] for i in idx.tolist()) if self.image_names else ()
+        return replace(
+            self,
+            images=self.images[idx],
+            poses=self.poses[idx],
+            intrinsics=self.intrinsics[idx],
+            alphas=None if self.alphas is None else self.alphas[idx],
+            splits={split: tuple(range(len(idx)))},
+            image_names=names,
+        )
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """A batch of rays.
+
+    Attributes:
+        origins: (n_rays, 3) ray origins in world space.
+        directions: (n_rays, 3) unit ray directions in world space.
+        near: (n_rays,) distance where sampling starts.
+        far: (n_rays,) distance where sampling ends (``far >= near``).
+        target: (n_rays, 3) ground-truth RGB, or None when rendering novel views.
+    """
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    near: torch.Tensor
+    far: torch.Tensor
+    target: torch.Tensor | None = None
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    def to(self, device: torch.device | str) -> "RayBatch":
+        return RayBatch(
+            self.origins.to(device),
+            self.directions.to(device),
+            self.near.to(device),
+            self.far.to(device),
+            None if self.target is None else self.target.to(device),
+        )
+
+    def __getitem__(self, idx: slice | torch.Tensor) -> "RayBatch":
+        return RayBatch(
+            self.origins[idx],
+            self.directions[idx],
+            self.near[idx],
+            self.far[idx],
+            None if self.target is None else self.target[idx],
+        )

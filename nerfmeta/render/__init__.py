@@ -1,0 +1,1 @@
+"""Rendering maths: pure functions over tensors (rays, sampling, volume compositing)."""
