@@ -1,0 +1,122 @@
+"""Volume rendering maths: hand-computed rays, a float64 reference, and extreme inputs."""
+
+import math
+
+import pytest
+import torch
+
+from nerfmeta.render.volume import (
+    alpha_from_tau,
+    composite,
+    expected_depth,
+    render_weights,
+    shifted_softplus,
+    softplus_shift_for_alpha,
+)
+
+
+def test_three_sample_ray_by_hand():
+    tau = torch.tensor([[0.5, 1.0, 2.0]], dtype=torch.float64)
+    colors = torch.tensor([[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]], dtype=torch.float64)
+    w, t_final = render_weights(tau)
+    a = [1 - math.exp(-0.5), 1 - math.exp(-1.0), 1 - math.exp(-2.0)]
+    expected = [a[0], math.exp(-0.5) * a[1], math.exp(-1.5) * a[2]]
+    assert w[0].tolist() == pytest.approx(expected, rel=1e-12)
+    assert t_final.item() == pytest.approx(math.exp(-3.5), rel=1e-12)
+    rgb = composite(w, colors, t_final, torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64))
+    assert rgb[0].tolist() == pytest.approx([e + math.exp(-3.5) for e in expected], rel=1e-12)
+
+
+def test_five_sample_ray_with_empty_and_opaque_samples():
+    # empty, empty, opaque (tau huge), then anything behind is invisible
+    tau = torch.tensor([[0.0, 0.0, 1e16, 3.0, 0.2]])
+    w, t_final = render_weights(tau)
+    assert w[0].tolist() == [0.0, 0.0, 1.0, 0.0, 0.0]
+    assert t_final.item() == 0.0
+    depth = expected_depth(w, torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0]]), t_final, torch.tensor([6.0]))
+    assert depth.item() == 3.0
+
+
+def test_weights_sum_to_one_minus_final_transmittance():
+    g = torch.Generator().manual_seed(0)
+    tau = torch.rand(64, 40, generator=g) * 0.3
+    w, t_final = render_weights(tau)
+    torch.testing.assert_close(w.sum(-1) + t_final, torch.ones(64), atol=1e-6, rtol=0)
+
+
+def _reference_float64(sigma, delta, colors, bg):
+    """The textbook formula with products of (1 - alpha), in float64."""
+    sigma, delta, colors, bg = (x.double() for x in (sigma, delta, colors, bg))
+    alpha = 1 - torch.exp(-sigma * delta)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], -1), -1)
+    w = trans * alpha
+    t_final = torch.prod(1 - alpha, -1)
+    return (w[..., None] * colors).sum(1) + t_final[:, None] * bg, w
+
+
+def test_float32_matches_float64_reference_on_random_rays():
+    g = torch.Generator().manual_seed(1)
+    n, s = 256, 64
+    sigma = torch.exp(torch.empty(n, s).uniform_(-7, 7, generator=g))  # 1e-3 .. 1e3
+    delta = torch.exp(torch.empty(n, s).uniform_(-7, 0, generator=g))
+    colors = torch.rand(n, s, 3, generator=g)
+    bg = torch.tensor([1.0, 1.0, 1.0])
+    w, t_final = render_weights(sigma * delta)
+    rgb = composite(w, colors, t_final, bg)
+    ref_rgb, ref_w = _reference_float64(sigma, delta, colors, bg)
+    assert (rgb.double() - ref_rgb).abs().max().item() < 2e-6
+    assert (w.double() - ref_w).abs().max().item() < 2e-6
+
+
+EXTREME_SIGMA = [0.0, 1e-10, 1e-3, 1.0, 1e3, 1e6]
+EXTREME_DELTA = [0.0, 1e-10, 1e-3, 1.0, 1e3, 1e10]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_extreme_inputs_give_finite_outputs_and_gradients(dtype):
+    # every pair of (sigma, delta) appears on one ray of 4 samples, mixed with ordinary samples
+    pairs = [(s, d) for s in EXTREME_SIGMA for d in EXTREME_DELTA]
+    sigma = torch.tensor([[0.5, s, 2.0, s] for s, _ in pairs], dtype=dtype, requires_grad=True)
+    delta = torch.tensor([[0.1, d, 0.1, d] for _, d in pairs], dtype=dtype, requires_grad=True)
+    colors = torch.rand(len(pairs), 4, 3, dtype=dtype, requires_grad=True)
+    w, t_final = render_weights(sigma * delta)
+    rgb = composite(w, colors, t_final, torch.ones(3, dtype=dtype))
+    assert torch.isfinite(rgb).all() and torch.isfinite(w).all() and torch.isfinite(t_final).all()
+    assert (w >= 0).all() and (w <= 1).all()
+    assert (w.sum(-1) <= 1 + 1e-6).all()
+    grads = torch.autograd.grad(rgb.sum() + w.sum(), (sigma, delta, colors))
+    for g in grads:
+        assert torch.isfinite(g).all()
+
+
+def test_gradcheck_float64():
+    g = torch.Generator().manual_seed(2)
+    sigma = torch.rand(3, 5, generator=g, dtype=torch.float64).requires_grad_()
+    delta = (torch.rand(3, 5, generator=g, dtype=torch.float64) + 0.1).requires_grad_()
+    colors = torch.rand(3, 5, 3, generator=g, dtype=torch.float64).requires_grad_()
+
+    def fn(s, d, c):
+        w, t = render_weights(s * d)
+        return composite(w, c, t, torch.ones(3, dtype=torch.float64))
+
+    assert torch.autograd.gradcheck(fn, (sigma, delta, colors))
+
+
+@pytest.mark.parametrize("alpha_init", [1e-6, 1e-4, 1e-2, 0.5])
+@pytest.mark.parametrize("interval", [0.25, 1.0, 3.0])
+def test_shift_gives_the_chosen_initial_alpha(alpha_init, interval):
+    shift = softplus_shift_for_alpha(alpha_init, interval)
+    raw = torch.zeros(1, dtype=torch.float64)
+    alpha = alpha_from_tau(shifted_softplus(raw, shift) * interval)
+    assert alpha.item() == pytest.approx(alpha_init, rel=1e-9)
+
+
+def test_shift_rejects_out_of_range_alpha():
+    for bad in (0.0, 1.0, -0.1, 2.0):
+        with pytest.raises(ValueError, match="alpha_init"):
+            softplus_shift_for_alpha(bad)
+
+
+def test_alpha_from_tiny_tau_is_exact():
+    tau = torch.tensor([1e-12, 1e-8], dtype=torch.float32)
+    torch.testing.assert_close(alpha_from_tau(tau), tau, rtol=1e-6, atol=0)
