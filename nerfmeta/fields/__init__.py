@@ -1,0 +1,1 @@
+"""Backbones: every one is a :class:`~nerfmeta.fields.base.RadianceModel`."""
