@@ -1,0 +1,292 @@
+"""The NeRF MLP backbone: a positional-encoded MLP field rendered by stratified (+ importance) sampling.
+
+The field lives in the box-normalised frame: sample points are mapped to [-1, 1]^3 with
+:func:`~nerfmeta.fields.encoding.normalize_to_box` before encoding, and densities are per
+*box unit* (world lengths divided by the mean half-side of ``bounds``; exact for a cube). So the
+same weights mean the same geometry in scenes of different scale, which transfer and
+meta-learning across scenes rely on, and the initial-alpha shift below needs no scene size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerfmeta.data.scene import RayBatch
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.base import Layer, ParamGroup, RadianceModel, RenderOutput
+from nerfmeta.fields.encoding import encoding_dim, normalize_to_box, positional_encoding
+from nerfmeta.render.sampling import importance_samples, intervals_from_points, stratified_samples
+from nerfmeta.render.volume import composite, expected_depth, render_weights, softplus_shift_for_alpha
+
+DENSITY_ACTIVATIONS = ("softplus", "relu")
+
+
+@dataclass(frozen=True)
+class NerfMLPConfig:
+    """Architecture, sampling and learning rate of :class:`NerfMLP` (saved as JSON with every run)."""
+
+    pos_freqs: int = 10
+    """Octaves of the positional encoding of the (box-normalised) sample position."""
+    dir_freqs: int = 4
+    """Octaves of the positional encoding of the view direction (unused when not view-dependent)."""
+    depth: int = 8
+    """Number of linear+ReLU layers in the trunk that maps the encoded position to features."""
+    width: int = 256
+    """Width of the trunk (the view branch is ``width // 2`` wide)."""
+    skips: tuple[int, ...] = (4,)
+    """Trunk layers whose input is ``[features, encoded position]`` (0-based; 1..depth-1)."""
+    view_dependent: bool = True
+    """Colour depends on the view direction through a feature layer and a width/2 layer."""
+    n_samples: int = 64
+    """Stratified samples per ray (jittered in training, bin midpoints otherwise)."""
+    n_importance: int = 0
+    """Extra samples per ray drawn from the first pass's weights (0 disables the second pass)."""
+    density_activation: str = "softplus"
+    """``softplus`` (shifted so raw 0 gives ``alpha_init``, as DirectVoxGO) or ``relu`` (NeRF)."""
+    alpha_init: float = 1e-2
+    """Alpha of one sample spacing (``2 / n_samples`` box units) for raw 0; softplus only."""
+    lr: float = 5e-4
+    """Adam learning rate of all the MLP's parameters."""
+    raw_noise_std: float = 0.0
+    """Std of Gaussian noise added to the raw density in training (NeRF's regulariser; 0 = off)."""
+
+    def __post_init__(self) -> None:
+        # JSON has no tuples: accept a list for ``skips`` so a saved config loads back equal.
+        object.__setattr__(self, "skips", tuple(int(s) for s in self.skips))
+        checks = (
+            ("pos_freqs", self.pos_freqs >= 0, "use 0 or more"),
+            ("dir_freqs", self.dir_freqs >= 0, "use 0 or more"),
+            ("depth", self.depth >= 1, "use 1 or more"),
+            ("width", self.width >= 2, "use 2 or more"),
+            ("skips", all(1 <= s < self.depth for s in self.skips), f"use layer indices in 1..{self.depth - 1}"),
+            ("n_samples", self.n_samples >= 1, "use 1 or more"),
+            ("n_importance", self.n_importance >= 0, "use 0 (off) or more"),
+            ("density_activation", self.density_activation in DENSITY_ACTIVATIONS,
+             f"use one of {', '.join(DENSITY_ACTIVATIONS)}"),
+            ("alpha_init", 0.0 < self.alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-2"),
+            ("lr", self.lr > 0.0, "use a positive learning rate"),
+            ("raw_noise_std", self.raw_noise_std >= 0.0, "use 0 (off) or more"),
+        )
+        for name, ok, hint in checks:
+            if not ok:
+                raise ConfigError(f"nerf config {name}={getattr(self, name)!r} is not allowed: {hint}")
+
+    @property
+    def density_shift(self) -> float:
+        """Added to the raw density before softplus: raw 0 gives ``alpha_init`` per sample spacing.
+
+        The spacing is taken as ``2 / n_samples`` box units, i.e. the stratified spacing of a
+        ray whose ``[near, far]`` is as long as the box is wide (DirectVoxGO's ``act_shift``
+        with this interval). ``relu`` has no shift (0).
+        """
+        if self.density_activation != "softplus":
+            return 0.0
+        return softplus_shift_for_alpha(self.alpha_init, 2.0 / self.n_samples)
+
+
+NERF_PAPER = NerfMLPConfig()
+"""The NeRF paper's network (8x256, skip at the middle, view branch) with 64 stratified samples."""
+
+NERF_SMALL = NerfMLPConfig(pos_freqs=8, depth=4, width=128, skips=(2,), n_samples=48)
+"""A 4x128 network with 48 samples: the CLI's default, sized for a 2-core CPU machine."""
+
+PRESETS: dict[str, NerfMLPConfig] = {"paper": NERF_PAPER, "small": NERF_SMALL}
+"""Named presets, for ``--preset`` style choices."""
+
+
+class NerfMLP(RadianceModel):
+    """NeRF: a positional-encoded MLP mapping a point (and view direction) to density and colour.
+
+    Architecture (``W = width``, ``P``/``V`` the encoded position/direction widths)::
+
+        trunk.0 .. trunk.{depth-1}   Linear + ReLU; trunk.i takes [h, P] for i in skips
+        density                      Linear(W, 1) on the trunk output -> raw density
+        feature                      Linear(W, W), no activation         (view_dependent only)
+        view.0                       Linear(W + V, W/2) + ReLU           (view_dependent only)
+        rgb                          Linear(W/2, 3) (or Linear(W, 3) without the view branch) -> sigmoid
+
+    Note ``skips=(4,)`` concatenates the input before the fifth trunk layer (``trunk.4``); the
+    official NeRF code's ``skips=[4]`` concatenates it one layer later (before ``trunk.5``).
+
+    Rendering (one pass over all given rays; the caller chunks): ``n_samples`` stratified
+    samples in ``[near, far]`` (jittered with ``generator`` when ``train``, bin midpoints
+    otherwise), ``tau = sigma * delta`` with ``delta`` in box units, then compositing on the
+    background. With ``n_importance > 0`` a second pass draws ``n_importance`` samples from the
+    first pass's weights and renders the sorted union of both sets, re-using the first pass's
+    evaluations. Both passes use the *same* network (a common lightweight variant; the NeRF paper
+    trains a separate coarse network); the first pass's colour is in ``extras["rgb_coarse"]`` so
+    a loss may supervise it too.
+
+    Layers for ``freeze_first(k)``, input to output: ``trunk.0 .. trunk.{depth-1}, density``
+    and, with the view branch, ``feature, view.0``, then ``rgb``. So ``k <= depth`` freezes the
+    first ``k`` trunk layers (``k = depth // 2``: the first half of the trunk; ``k = depth``:
+    the whole trunk), ``k = depth + 1`` also the density head, i.e. all of the geometry, so only
+    the colour layers adapt; ``k = len(layers())`` freezes everything. For ``NERF_PAPER`` that is
+    12 layers (4 = half the trunk, 9 = geometry); for ``NERF_SMALL`` 8 (2 = half, 5 = geometry).
+
+    Parameters are created on ``bounds``' device and dtype; ``forward`` follows its inputs and
+    changes no state, so ``torch.func.functional_call`` and second-order gradients work.
+    """
+
+    backbone = "nerf"
+
+    def __init__(self, config: NerfMLPConfig, bounds: torch.Tensor, *, generator: torch.Generator | None = None):
+        """Build the network.
+
+        Args:
+            config: architecture and sampling.
+            bounds: (2, 3) ``[min_xyz, max_xyz]`` box holding the content (kept as a buffer).
+            generator: random source for the initial weights (PyTorch's default ``nn.Linear``
+                initialisation); None uses the global generator.
+        """
+        super().__init__()
+        if tuple(bounds.shape) != (2, 3) or not bool((bounds[1] > bounds[0]).all()):
+            raise ConfigError(f"nerf bounds {bounds.tolist()} must be [min_xyz, max_xyz] with min < max on every axis")
+        self.config = config
+        self.register_buffer("bounds", bounds.detach().clone())
+        kw = {"device": bounds.device, "dtype": bounds.dtype}
+        w, pos_dim = config.width, encoding_dim(3, config.pos_freqs)
+        self.trunk = nn.ModuleList(
+            nn.Linear((pos_dim if i == 0 else w) + (pos_dim if i in config.skips else 0), w, **kw)
+            for i in range(config.depth)
+        )
+        self.density = nn.Linear(w, 1, **kw)
+        if config.view_dependent:
+            self.feature = nn.Linear(w, w, **kw)
+            self.view = nn.ModuleList([nn.Linear(w + encoding_dim(3, config.dir_freqs), w // 2, **kw)])
+            self.rgb = nn.Linear(w // 2, 3, **kw)
+        else:
+            self.rgb = nn.Linear(w, 3, **kw)
+        if generator is not None:
+            self._init_weights(generator)
+
+    def _init_weights(self, generator: torch.Generator) -> None:
+        """``nn.Linear``'s default init, U(-1/sqrt(fan_in), 1/sqrt(fan_in)), drawn from ``generator``."""
+        with torch.no_grad():
+            for module in self.modules():
+                if isinstance(module, nn.Linear):
+                    bound = 1.0 / math.sqrt(module.in_features)
+                    for p in (module.weight, module.bias):
+                        u = torch.rand(p.shape, generator=generator, dtype=p.dtype, device="cpu")
+                        p.copy_((2.0 * u - 1.0) * bound)
+
+    # -- the field -------------------------------------------------------------------------
+
+    def _raw(self, points: torch.Tensor, directions: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw density (...,) before activation and colour (..., 3) in [0, 1]; see :meth:`query`."""
+        x = positional_encoding(normalize_to_box(points, self.bounds), self.config.pos_freqs)
+        h = x
+        for i, layer in enumerate(self.trunk):
+            if i in self.config.skips:
+                h = torch.cat([h, x], dim=-1)
+            h = F.relu(layer(h))
+        raw_sigma = self.density(h)[..., 0]
+        if self.config.view_dependent:
+            if directions is None:
+                raise ValueError("this NerfMLP is view-dependent: query() needs directions")
+            d = positional_encoding(directions, self.config.dir_freqs)
+            d = d.expand(*h.shape[:-1], d.shape[-1])
+            h = F.relu(self.view[0](torch.cat([self.feature(h), d], dim=-1)))
+        return raw_sigma, torch.sigmoid(self.rgb(h))
+
+    def _activate(self, raw_sigma: torch.Tensor) -> torch.Tensor:
+        if self.config.density_activation == "softplus":
+            return F.softplus(raw_sigma + self.config.density_shift)
+        return F.relu(raw_sigma)
+
+    def query(
+        self, points: torch.Tensor, directions: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density and colour at world-space points.
+
+        Args:
+            points: (..., 3) world positions.
+            directions: (..., 3) unit view directions, broadcastable to ``points`` (e.g.
+                (n_rays, 1, 3) for points (n_rays, n_samples, 3)); ignored, and may be None,
+                when the model is not view-dependent.
+
+        Returns:
+            sigma (...,) non-negative density per box unit of length, and rgb (..., 3) in [0, 1].
+        """
+        raw_sigma, rgb = self._raw(points, directions)
+        return self._activate(raw_sigma), rgb
+
+    # -- rendering -------------------------------------------------------------------------
+
+    def _evaluate(
+        self, rays: RayBatch, t: torch.Tensor, train: bool, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """sigma (n_rays, n) and rgb (n_rays, n, 3) at distances ``t`` (n_rays, n) along ``rays``."""
+        points = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]
+        raw_sigma, rgb = self._raw(points, rays.directions[:, None, :])
+        if train and self.config.raw_noise_std > 0.0:
+            noise = torch.randn(raw_sigma.shape, generator=generator, dtype=raw_sigma.dtype, device="cpu")
+            raw_sigma = raw_sigma + self.config.raw_noise_std * noise.to(raw_sigma.device)
+        return self._activate(raw_sigma), rgb
+
+    def forward(
+        self,
+        rays: RayBatch,
+        *,
+        background: torch.Tensor,
+        train: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> RenderOutput:
+        """Render ``rays`` (n_rays of them) in one pass.
+
+        Args:
+            rays: origins (n_rays, 3), unit directions (n_rays, 3), near/far (n_rays,).
+            background: (3,) or (n_rays, 3) RGB behind the content.
+            train: jitter the samples (and add ``raw_noise_std`` noise) using ``generator``.
+            generator: random source for training; None uses the global generator.
+
+        Returns:
+            rgb (n_rays, 3), acc (n_rays,), depth (n_rays,) in world units, ``samples_evaluated =
+            n_rays * (n_samples + n_importance)``, and extras ``t`` (n_rays, n) the sorted sample
+            distances, ``weights`` (n_rays, n) their compositing weights (``n`` all samples of the
+            final pass) and, with importance sampling, ``rgb_coarse`` (n_rays, 3) of the first pass.
+        """
+        cfg = self.config
+        box_unit = 0.5 * (self.bounds[1] - self.bounds[0]).mean()  # world length of one box unit
+        t, delta, edges = stratified_samples(rays.near, rays.far, cfg.n_samples, generator=generator, perturb=train)
+        sigma, rgb = self._evaluate(rays, t, train, generator)
+        weights, t_final = render_weights(sigma * delta / box_unit)
+        extras: dict[str, torch.Tensor] = {}
+        if cfg.n_importance > 0:
+            extras["rgb_coarse"] = composite(weights, rgb, t_final, background)
+            t_fine = importance_samples(edges, weights, cfg.n_importance, generator=generator, perturb=train)
+            sigma_fine, rgb_fine = self._evaluate(rays, t_fine, train, generator)
+            t, order = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1)
+            sigma = torch.cat([sigma, sigma_fine], dim=-1).gather(-1, order)
+            rgb = torch.cat([rgb, rgb_fine], dim=-2).gather(-2, order[..., None].expand(-1, -1, 3))
+            delta = intervals_from_points(t, rays.near, rays.far)
+            weights, t_final = render_weights(sigma * delta / box_unit)
+        extras["t"] = t
+        extras["weights"] = weights
+        return RenderOutput(
+            rgb=composite(weights, rgb, t_final, background),
+            acc=1.0 - t_final,
+            depth=expected_depth(weights, t, t_final, rays.far),
+            samples_evaluated=len(rays) * (cfg.n_samples + cfg.n_importance),
+            extras=extras,
+        )
+
+    # -- interface -------------------------------------------------------------------------
+
+    def layers(self) -> list[Layer]:
+        names = [f"trunk.{i}" for i in range(self.config.depth)] + ["density"]
+        if self.config.view_dependent:
+            names += ["feature", "view.0"]
+        names.append("rgb")
+        return [
+            Layer(name, tuple(f"{name}.{p}" for p, _ in self.get_submodule(name).named_parameters()))
+            for name in names
+        ]
+
+    def param_groups(self) -> list[ParamGroup]:
+        return [ParamGroup("mlp", tuple(n for n, _ in self.named_parameters()), self.config.lr)]
