@@ -1,0 +1,356 @@
+"""Pieces shared by the scene parsers: load options, validation, image stacks, scene assembly.
+
+Every check raises :class:`~nerfmeta.errors.SceneError` (bad files) or
+:class:`~nerfmeta.errors.ConfigError` (bad options) with one line naming the file or value.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Any, Iterable, Iterator, Sequence
+
+import numpy as np
+import torch
+
+from nerfmeta.data.bounds import frustum_bounds
+from nerfmeta.data.images import (
+    DEFAULT_MAX_PIXELS,
+    check_pixel_limit,
+    composite_,
+    decode_array,
+    downscale_image,
+    downscaled_size,
+    image_shape,
+    to_float_images,
+)
+from nerfmeta.data.scene import Scene
+from nerfmeta.errors import ConfigError, SceneError
+
+HOLDOUT_EVERY = 8
+HOLDOUT_EVERY_TEXT = f"every {HOLDOUT_EVERY}th view (no test split in the files)"
+ROTATION_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """How to read a scene (the same for every format)."""
+
+    downscale: float = 1.0
+    """Reduce images by this factor (>= 1) with area filtering; intrinsics follow."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """RGB in [0, 1] that images with an alpha channel are composited on."""
+    max_pixels: int = DEFAULT_MAX_PIXELS
+    """Refuse any image with more pixels than this (checked from the header, before decoding)."""
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.downscale) or self.downscale < 1:
+            raise ConfigError(f"downscale must be a number >= 1, got {self.downscale}")
+        bg = tuple(self.background)
+        if len(bg) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in bg):
+            raise ConfigError(f"background must be three values in [0, 1], got {self.background}")
+        object.__setattr__(self, "background", tuple(float(v) for v in bg))
+        if int(self.max_pixels) < 1:
+            raise ConfigError(f"max_pixels must be >= 1, got {self.max_pixels}")
+
+
+# --- files -------------------------------------------------------------------------------------
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``; SceneError when missing, unreadable, invalid or not an object."""
+    if not path.is_file():
+        raise SceneError(f"{path}: file not found")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise SceneError(f"{path}: cannot read file ({err})") from err
+    except json.JSONDecodeError as err:
+        raise SceneError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from err
+    if not isinstance(doc, dict):
+        raise SceneError(f"{path}: expected a JSON object at the top level, got {type(doc).__name__}")
+    return doc
+
+
+def safe_relative(folder: Path, rel: Any, *, where: str) -> Path:
+    """``folder / rel`` for a relative path that stays inside ``folder``.
+
+    Checked on the path text (``..`` and absolute paths are refused), so symbolic links inside the
+    scene folder are allowed.
+    """
+    if not isinstance(rel, str) or not rel.strip():
+        raise SceneError(f"{where}: file_path must be a non-empty string, got {rel!r}")
+    text = rel.replace("\\", "/")
+    pure = PurePosixPath(text)
+    if pure.is_absolute() or os.path.isabs(rel) or (len(text) > 1 and text[1] == ":"):
+        raise SceneError(f"{where}: file_path {rel!r} is absolute; it must be relative to the scene folder")
+    if ".." in pure.parts:
+        raise SceneError(f"{where}: file_path {rel!r} leaves the scene folder")
+    return folder.joinpath(*[p for p in pure.parts if p not in (".", "")])
+
+
+def find_frame_image(folder: Path, rel: Any, *, where: str) -> Path:
+    """The image a frame's ``file_path`` names, trying ``.png`` when the extension is omitted."""
+    path = safe_relative(folder, rel, where=where)
+    with_png = path.with_name(path.name + ".png")
+    if path.is_file():
+        return path
+    if with_png.is_file():
+        return with_png
+    raise SceneError(f"{where}: image {rel!r} not found in {folder}")
+
+
+# --- values ------------------------------------------------------------------------------------
+
+
+def finite_number(value: Any, *, where: str, positive: bool = False) -> float:
+    """``value`` as a float; SceneError when it is not a finite number (or not > 0 if ``positive``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise SceneError(f"{where} must be a number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise SceneError(f"{where} must be finite, got {number}")
+    if positive and number <= 0:
+        raise SceneError(f"{where} must be > 0, got {number:g}")
+    return number
+
+
+def check_pose(matrix: Any, *, where: str) -> np.ndarray:
+    """A validated (4, 4) float64 rigid camera-to-world matrix.
+
+    Refuses wrong shapes, NaN/inf, a bottom row other than ``[0, 0, 0, 1]``, and rotations that
+    are not orthonormal (``|R^T R - I| > 1e-3``) or are reflections.
+    """
+    try:
+        pose = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"{where}: pose is not a 4x4 matrix of numbers") from err
+    if pose.shape != (4, 4):
+        raise SceneError(f"{where}: pose must be 4x4, got shape {pose.shape}")
+    if not np.isfinite(pose).all():
+        raise SceneError(f"{where}: pose contains NaN or inf")
+    if np.abs(pose[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
+        raise SceneError(f"{where}: pose bottom row must be [0, 0, 0, 1], got {pose[3].tolist()}")
+    rot = pose[:3, :3]
+    err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    if err > ROTATION_TOLERANCE:
+        raise SceneError(f"{where}: pose is not rigid (rotation not orthonormal, error {err:.3g})")
+    if np.linalg.det(rot) < 0:
+        raise SceneError(f"{where}: pose rotation is a reflection (determinant < 0)")
+    return pose
+
+
+def near_far(near: Any, far: Any, *, where: str) -> tuple[float, float]:
+    """Validated ``0 <= near < far``, both finite."""
+    n = finite_number(near, where=f"{where}: near")
+    f = finite_number(far, where=f"{where}: far")
+    if n < 0 or f <= n:
+        raise SceneError(f"{where}: need 0 <= near < far, got near={n:g} far={f:g}")
+    return n, f
+
+
+def parse_aabb(value: Any, *, where: str) -> torch.Tensor:
+    """A (2, 3) float32 box ``[[min xyz], [max xyz]]`` with min < max."""
+    try:
+        box = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"{where}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]") from err
+    if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
+        raise SceneError(f"{where}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
+    return torch.tensor(box, dtype=torch.float32)
+
+
+def parse_category(value: Any, *, where: str) -> str | None:
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise SceneError(f"{where}: category must be a string, got {value!r}")
+    return value
+
+
+def every_nth_splits(n_views: int, every: int = HOLDOUT_EVERY) -> dict[str, tuple[int, ...]]:
+    """Views 0, every, 2*every, ... as ``test`` and the rest as ``train``."""
+    test = tuple(range(0, n_views, every))
+    train = tuple(i for i in range(n_views) if i % every != 0)
+    return {"train": train, "test": test}
+
+
+def scale_intrinsics(intrinsics: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """(n, 4) ``(fx, fy, cx, cy)`` for images resized by ``sx`` horizontally and ``sy`` vertically.
+
+    Exact for the pixel-centre convention: the image edges map to the new edges.
+    """
+    scale = torch.tensor([sx, sy, sx, sy], dtype=intrinsics.dtype)
+    return intrinsics * scale
+
+
+# --- images ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ViewStack:
+    """Images of all views, read, composited and downscaled.
+
+    Attributes:
+        images: (n, h, w, 3) float32 RGB composited on the background.
+        alphas: (n, h, w) float32, or None when no image had an alpha channel.
+        height, width: size after downscaling.
+        source_height, source_width: size of the files.
+    """
+
+    images: torch.Tensor
+    alphas: torch.Tensor | None
+    height: int
+    width: int
+    source_height: int
+    source_width: int
+
+
+READ_CHUNK = 8
+"""Images converted, composited and downscaled together (fewer, larger tensor operations)."""
+
+
+def check_image_sizes(paths: Sequence[Path], max_pixels: int) -> tuple[int, int]:
+    """Read every header; all images must exist, fit ``max_pixels`` and share the first one's size."""
+    if not paths:
+        raise SceneError("no images to read")
+    first: tuple[int, int] | None = None
+    for path in paths:
+        height, width = image_shape(path)
+        check_pixel_limit(path, height, width, max_pixels)
+        if first is None:
+            first = (height, width)
+        elif (height, width) != first:
+            raise SceneError(
+                f"{path}: image is {width}x{height} but {paths[0].name} is {first[1]}x{first[0]}; "
+                "all views must have the same size"
+            )
+    assert first is not None
+    return first
+
+
+def stack_views(
+    batches: Iterable[tuple[torch.Tensor, int]], n: int, height: int, width: int, options: LoadOptions, factor: float
+) -> ViewStack:
+    """Composite (at full size), downscale and store batches of float images.
+
+    Args:
+        batches: (images (B, H, W, 3|4) float in [0, 1], index of the first) in any order; the
+            batches are overwritten (composited in place).
+        n: total number of views.
+        height, width: size of the source images.
+    """
+    out_h, out_w = downscaled_size(height, width, factor)
+    images = torch.empty(n, out_h, out_w, 3, dtype=torch.float32)
+    alphas: torch.Tensor | None = None
+    for batch, start in batches:
+        end = start + batch.shape[0]
+        if batch.shape[-1] == 3:
+            images[start:end] = downscale_image(batch, factor)
+            continue
+        small = downscale_image(composite_(batch, options.background), factor)
+        images[start:end] = small[..., :3]
+        if alphas is None:
+            alphas = torch.ones(n, out_h, out_w, dtype=torch.float32)
+        alphas[start:end] = small[..., 3]
+    return ViewStack(images, alphas, out_h, out_w, height, width)
+
+
+def read_views(paths: Sequence[Path], options: LoadOptions, *, downscale: float | None = None) -> ViewStack:
+    """Read, composite and downscale images that must all have the same size.
+
+    Every header is checked (existence, pixel limit, equal sizes) before any pixel is decoded.
+    Compositing happens at full size, then RGB and alpha are area-downscaled.
+
+    Args:
+        paths: one image file per view.
+        options: background, pixel limit and (unless ``downscale`` is given) the factor.
+        downscale: factor to apply instead of ``options.downscale`` (1 when the files are already
+            reduced, as LLFF's ``images_N``).
+    """
+    factor = options.downscale if downscale is None else downscale
+    height, width = check_image_sizes(paths, options.max_pixels)
+
+    def batches() -> Iterator[tuple[torch.Tensor, int]]:
+        for start in range(0, len(paths), READ_CHUNK):
+            chunk = list(paths[start : start + READ_CHUNK])
+            arrays = [decode_array(p) for p in chunk]
+            for path, array in zip(chunk, arrays):
+                if array.shape[:2] != (height, width):  # a header that lied
+                    raise SceneError(f"{path}: decoded size {array.shape[:2]} differs from its header")
+            yield to_float_images(arrays, names=[str(p) for p in chunk]), start
+
+    return stack_views(batches(), len(paths), height, width, options, factor)
+
+
+def image_arrays_to_views(array: np.ndarray, options: LoadOptions, *, name: str) -> ViewStack:
+    """A ViewStack from an in-memory (n, H, W, 3|4) uint8 or float [0, 1] array (NPZ scenes)."""
+    if array.ndim != 4 or array.shape[-1] not in (3, 4) or array.shape[0] < 1:
+        raise SceneError(f"{name}: images must be (N, H, W, 3) or (N, H, W, 4), got shape {array.shape}")
+    height, width = int(array.shape[1]), int(array.shape[2])
+    check_pixel_limit(name, height, width, options.max_pixels)
+
+    def batches() -> Iterator[tuple[torch.Tensor, int]]:
+        for start in range(0, len(array), READ_CHUNK):
+            chunk = [np.asarray(a) for a in array[start : start + READ_CHUNK]]
+            names = [f"{name}: images[{start + k}]" for k in range(len(chunk))]
+            yield to_float_images(chunk, names=names), start
+
+    return stack_views(batches(), len(array), height, width, options, options.downscale)
+
+
+# --- scene -------------------------------------------------------------------------------------
+
+
+def build_scene(
+    *,
+    views: ViewStack,
+    poses: np.ndarray | torch.Tensor,
+    intrinsics: torch.Tensor,
+    near: float,
+    far: float,
+    splits: dict[str, tuple[int, ...]],
+    holdout: str,
+    source: Path,
+    format: str,
+    options: LoadOptions,
+    downscale: float,
+    aabb: torch.Tensor | None = None,
+    category: str | None = None,
+    image_names: Sequence[str] = (),
+) -> Scene:
+    """Assemble a :class:`Scene`, computing bounds from the camera frusta unless ``aabb`` is given.
+
+    Args:
+        intrinsics: (n, 4) ``(fx, fy, cx, cy)`` for the images as read (after downscaling).
+    """
+    poses_t = torch.as_tensor(np.asarray(poses), dtype=torch.float64)
+    n = views.images.shape[0]
+    if poses_t.shape != (n, 4, 4) or intrinsics.shape != (n, 4):
+        raise ValueError(f"{n} views but poses {tuple(poses_t.shape)}, intrinsics {tuple(intrinsics.shape)}")
+    if not splits.get("train"):
+        raise SceneError(f"{source}: no training views (a scene needs at least 2 views)")
+    if aabb is None:
+        bounds = frustum_bounds(poses_t, intrinsics.double(), views.height, views.width, near, far).float()
+    else:
+        bounds = aabb.float()
+    return Scene(
+        images=views.images,
+        poses=poses_t.float(),
+        intrinsics=intrinsics.float(),
+        near=float(near),
+        far=float(far),
+        bounds=bounds,
+        splits={k: tuple(int(i) for i in v) for k, v in splits.items()},
+        holdout=holdout,
+        source=source,
+        format=format,
+        category=category,
+        background=options.background if views.alphas is not None else None,
+        alphas=views.alphas,
+        image_names=tuple(image_names),
+        downscale=float(downscale),
+    )

@@ -1,0 +1,128 @@
+"""LLFF scenes: ``poses_bounds.npy`` with ``images/`` (and optionally ``images_N/``).
+
+``poses_bounds.npy`` is (n_views, 17): per view a row-major 3x5 matrix ``[R | t | (h, w, f)]``
+followed by the near and far scene depths. LLFF's rotation columns are [down, right, back]; they
+are reordered to the OpenGL [right, up, back] (``[c1, -c0, c2]``). ``(h, w, f)`` describe the
+full-resolution images; the intrinsics ``(f, f, w/2, h/2)`` are scaled to the size actually read.
+
+Images are the files of ``images/``, sorted by name, one per row. With an integer downscale ``N``
+and an ``images_N/`` folder, that folder is read as is (LLFF's pre-reduced images); otherwise
+``images/`` is read and area-downscaled.
+
+``near = 0.9 * min(near depths)`` and ``far = 1.1 * max(far depths)`` (the depths are along the
+optical axis; the margin covers the longer corner rays). Splits: every 8th view (0, 8, 16, ...)
+is held out as the test split. Poses are kept in the file's world units (no re-centring, no NDC).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerfmeta.data.common import (
+    HOLDOUT_EVERY_TEXT,
+    LoadOptions,
+    build_scene,
+    check_pose,
+    every_nth_splits,
+    near_far,
+    read_views,
+)
+from nerfmeta.data.images import list_images
+from nerfmeta.data.scene import Scene
+from nerfmeta.errors import SceneError
+
+NAME = "llff"
+EXPECTS = "poses_bounds.npy (N x 17) with images/ or images_N/"
+FILE_NAME = "poses_bounds.npy"
+ASPECT_TOLERANCE = 0.02
+
+
+def detect(path: Path) -> bool:
+    """True for a folder holding ``poses_bounds.npy``."""
+    return path.is_dir() and (path / FILE_NAME).is_file()
+
+
+def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
+    """(n, 3, 4) LLFF ``[down, right, back | t]`` to (n, 4, 4) OpenGL ``[right, up, back | t]``."""
+    out = np.zeros((len(poses), 4, 4), dtype=np.float64)
+    out[:, :3, 0] = poses[:, :, 1]
+    out[:, :3, 1] = -poses[:, :, 0]
+    out[:, :3, 2] = poses[:, :, 2]
+    out[:, :3, 3] = poses[:, :, 3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _image_folder(path: Path, downscale: float) -> tuple[Path, float]:
+    """The folder to read and the downscale still to apply to its images."""
+    if downscale > 1 and float(downscale).is_integer():
+        reduced = path / f"images_{int(downscale)}"
+        if list_images(reduced):
+            return reduced, 1.0
+    full = path / "images"
+    if not list_images(full):
+        others = sorted(p.name for p in path.glob("images_*") if list_images(p))
+        hint = f" (found {', '.join(others)}: use that factor as the downscale)" if others else ""
+        raise SceneError(f"{path}: LLFF scene has no images in images/{hint}")
+    return full, downscale
+
+
+def load(path: Path, options: LoadOptions) -> Scene:
+    """Read an LLFF scene folder (see the module docstring)."""
+    file = path / FILE_NAME
+    try:
+        data = np.load(file, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SceneError(f"{file}: cannot read as a .npy array ({err})") from err
+    if data.ndim != 2 or data.shape[1] != 17 or data.shape[0] < 1:
+        raise SceneError(f"{file}: expected an (N, 17) array, got shape {data.shape}")
+    if not np.issubdtype(data.dtype, np.number):
+        raise SceneError(f"{file}: expected numbers, got dtype {data.dtype}")
+    data = data.astype(np.float64)
+    if not np.isfinite(data).all():
+        raise SceneError(f"{file}: contains NaN or inf")
+    mats = data[:, :15].reshape(-1, 3, 5)
+    hwf = mats[:, :, 4]
+    if (hwf <= 0).any():
+        raise SceneError(f"{file}: image height, width and focal (column 5) must be > 0")
+    poses = llff_to_opengl(mats[:, :, :4])
+    for k, pose in enumerate(poses):
+        check_pose(pose, where=f"{file}: view {k}")
+    depths = data[:, 15:17]
+    if (depths[:, 0] <= 0).any() or (depths[:, 1] <= depths[:, 0]).any():
+        raise SceneError(f"{file}: per-view bounds must satisfy 0 < near < far")
+    near, far = near_far(0.9 * depths[:, 0].min(), 1.1 * depths[:, 1].max(), where=str(file))
+
+    folder, remaining = _image_folder(path, options.downscale)
+    image_paths = list_images(folder)
+    if len(image_paths) != len(poses):
+        raise SceneError(f"{file}: has {len(poses)} poses but {folder} holds {len(image_paths)} images")
+    views = read_views(image_paths, options, downscale=remaining)
+    sx = views.width / hwf[:, 1]
+    sy = views.height / hwf[:, 0]
+    bad = np.abs(sx / sy - 1.0) > ASPECT_TOLERANCE
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise SceneError(
+            f"{image_paths[k]}: image aspect {views.source_width}x{views.source_height} does not match "
+            f"{int(hwf[k, 1])}x{int(hwf[k, 0])} in {FILE_NAME} (rotated images?)"
+        )
+    full = torch.tensor(np.stack([hwf[:, 2], hwf[:, 2], hwf[:, 1] / 2, hwf[:, 0] / 2], axis=-1))
+    intrinsics = full * torch.tensor(np.stack([sx, sy, sx, sy], axis=-1))
+    return build_scene(
+        views=views,
+        poses=poses,
+        intrinsics=intrinsics,
+        near=near,
+        far=far,
+        splits=every_nth_splits(len(poses)),
+        holdout=HOLDOUT_EVERY_TEXT,
+        source=path,
+        format=NAME,
+        options=options,
+        downscale=options.downscale,
+        image_names=[p.relative_to(path).as_posix() for p in image_paths],
+    )

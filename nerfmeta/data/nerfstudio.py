@@ -1,0 +1,194 @@
+"""nerfstudio / instant-ngp scenes: one ``transforms.json``.
+
+Intrinsics come from ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``, given at the top level or
+per frame (a frame's values override the top level). Without ``fl_x``, ``camera_angle_x`` gives
+``fl_x = 0.5 * w / tan(camera_angle_x / 2)``; ``fl_y`` defaults to ``camera_angle_y`` the same way,
+then to ``fl_x``; ``cx``, ``cy`` default to the image centre and ``w``, ``h`` to the image size (when
+given they must match it). Lens distortion coefficients are ignored (a warning is logged); fisheye
+and equirectangular cameras are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
+
+Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
+
+``near``/``far``: the top-level keys when present. Otherwise a heuristic (see
+:func:`near_far_from_cameras`): the point the optical axes pass closest to (least squares) is
+taken as the centre of interest, and with ``d`` the camera distances to it,
+``near = 0.5 * min(d)`` and ``far = 1.5 * max(d)`` (which gives 2 and 6 for NeRF-synthetic
+cameras at radius 4). When the cameras do not look at a common point (e.g. forward-facing
+captures) the file must give ``near`` and ``far``. ``category`` and ``aabb`` are read as in the
+Blender format.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from nerfmeta.data.common import (
+    HOLDOUT_EVERY_TEXT,
+    LoadOptions,
+    build_scene,
+    check_image_sizes,
+    check_pose,
+    every_nth_splits,
+    find_frame_image,
+    finite_number,
+    near_far,
+    parse_aabb,
+    parse_category,
+    read_json,
+    read_views,
+    scale_intrinsics,
+)
+from nerfmeta.data.scene import Scene
+from nerfmeta.errors import SceneError
+
+log = logging.getLogger(__name__)
+
+NAME = "nerfstudio"
+EXPECTS = "transforms.json with fl_x/fl_y/cx/cy/w/h (or camera_angle_x) and frames"
+FILE_NAME = "transforms.json"
+UNSUPPORTED_CAMERAS = ("OPENCV_FISHEYE", "FISHEYE624", "EQUIRECTANGULAR")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def detect(path: Path) -> bool:
+    """True for a folder holding ``transforms.json``."""
+    return path.is_dir() and (path / FILE_NAME).is_file()
+
+
+def near_far_from_cameras(poses: np.ndarray) -> tuple[float, float] | None:
+    """Guess ``(near, far)`` from inward-looking cameras, or None when they share no focus.
+
+    The centre of interest ``c`` minimises the summed squared distance to the cameras' optical
+    axes. With ``d_i = |o_i - c|``: ``near = 0.5 * min(d)``, ``far = 1.5 * max(d)``. Returns None
+    when the axes are nearly parallel or ``c`` lies behind the cameras.
+
+    Args:
+        poses: (n, 4, 4) camera-to-world (OpenGL: the camera looks along -z).
+    """
+    origins = poses[:, :3, 3]
+    forward = -poses[:, :3, 2]
+    forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
+    proj = np.eye(3)[None] - forward[:, :, None] * forward[:, None, :]  # (n, 3, 3)
+    a = proj.sum(axis=0) / len(poses)
+    b = (proj @ origins[:, :, None]).sum(axis=0)[:, 0] / len(poses)
+    if np.linalg.eigvalsh(a).min() < 1e-2:
+        return None
+    centre = np.linalg.solve(a, b)
+    ahead = ((centre[None] - origins) * forward).sum(axis=-1)
+    if np.median(ahead) <= 0:
+        return None
+    dist = np.linalg.norm(origins - centre[None], axis=-1)
+    if dist.min() <= 0:
+        return None
+    return 0.5 * float(dist.min()), 1.5 * float(dist.max())
+
+
+def _get(frame: dict[str, Any], doc: dict[str, Any], key: str) -> Any:
+    return frame[key] if key in frame else doc.get(key)
+
+
+def _frame_intrinsics(
+    frame: dict[str, Any], doc: dict[str, Any], height: int, width: int, *, where: str
+) -> list[float]:
+    """``[fx, fy, cx, cy]`` of one frame for an image of ``height`` x ``width`` pixels."""
+    for key, actual in (("w", width), ("h", height)):
+        value = _get(frame, doc, key)
+        if value is not None and finite_number(value, where=f"{where}: {key}", positive=True) != actual:
+            raise SceneError(f"{where}: {key} is {value} but the image is {width}x{height}")
+    fl_x = _get(frame, doc, "fl_x")
+    if fl_x is not None:
+        fx = finite_number(fl_x, where=f"{where}: fl_x", positive=True)
+    else:
+        angle = _get(frame, doc, "camera_angle_x")
+        if angle is None:
+            raise SceneError(f"{where}: needs fl_x or camera_angle_x")
+        fx = _focal_from_angle(angle, width, where=f"{where}: camera_angle_x")
+    fl_y = _get(frame, doc, "fl_y")
+    if fl_y is not None:
+        fy = finite_number(fl_y, where=f"{where}: fl_y", positive=True)
+    elif _get(frame, doc, "camera_angle_y") is not None:
+        fy = _focal_from_angle(_get(frame, doc, "camera_angle_y"), height, where=f"{where}: camera_angle_y")
+    else:
+        fy = fx
+    cx = _get(frame, doc, "cx")
+    cy = _get(frame, doc, "cy")
+    cx = width / 2 if cx is None else finite_number(cx, where=f"{where}: cx")
+    cy = height / 2 if cy is None else finite_number(cy, where=f"{where}: cy")
+    return [fx, fy, cx, cy]
+
+
+def _focal_from_angle(angle: Any, size: int, *, where: str) -> float:
+    value = finite_number(angle, where=where, positive=True)
+    if value >= math.pi:
+        raise SceneError(f"{where} must be below pi radians, got {value:g}")
+    return 0.5 * size / math.tan(0.5 * value)
+
+
+def load(path: Path, options: LoadOptions) -> Scene:
+    """Read a nerfstudio / instant-ngp ``transforms.json`` scene (see the module docstring)."""
+    file = path / FILE_NAME
+    doc = read_json(file)
+    frames = doc.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise SceneError(f"{file}: 'frames' must be a non-empty list")
+    image_paths: list[Path] = []
+    poses = []
+    for k, frame in enumerate(frames):
+        where = f"{file}: frame {k}"
+        if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+            raise SceneError(f"{where}: needs file_path and transform_matrix")
+        model = _get(frame, doc, "camera_model")
+        if model in UNSUPPORTED_CAMERAS:
+            raise SceneError(f"{where}: camera_model {model} is not supported (pinhole cameras only)")
+        image_paths.append(find_frame_image(path, frame["file_path"], where=where))
+        poses.append(check_pose(frame["transform_matrix"], where=where))
+    poses_np = np.stack(poses)
+
+    height, width = check_image_sizes(image_paths, options.max_pixels)
+    intrinsics = torch.tensor(
+        [_frame_intrinsics(f, doc, height, width, where=f"{file}: frame {k}") for k, f in enumerate(frames)],
+        dtype=torch.float64,
+    )
+    if any(_get(f, doc, key) not in (None, 0, 0.0) for f in frames for key in DISTORTION_KEYS):
+        log.warning("%s: lens distortion coefficients are ignored (images are treated as pinhole)", file)
+
+    where = str(file)
+    if "near" in doc or "far" in doc:
+        if "near" not in doc or "far" not in doc:
+            raise SceneError(f"{where}: give both near and far, or neither")
+        near, far = near_far(doc["near"], doc["far"], where=where)
+    else:
+        guess = near_far_from_cameras(poses_np)
+        if guess is None:
+            raise SceneError(
+                f"{where}: cannot guess near/far because the cameras do not look at a common point; "
+                "add top-level 'near' and 'far' keys"
+            )
+        near, far = guess
+    aabb = parse_aabb(doc["aabb"], where=where) if "aabb" in doc else None
+    category = parse_category(doc.get("category"), where=where)
+
+    views = read_views(image_paths, options)
+    intrinsics = scale_intrinsics(intrinsics, views.width / width, views.height / height)
+    return build_scene(
+        views=views,
+        poses=poses_np,
+        intrinsics=intrinsics,
+        near=near,
+        far=far,
+        splits=every_nth_splits(len(image_paths)),
+        holdout=HOLDOUT_EVERY_TEXT,
+        source=path,
+        format=NAME,
+        options=options,
+        downscale=options.downscale,
+        aabb=aabb,
+        category=category,
+        image_names=[p.relative_to(path).as_posix() for p in image_paths],
+    )
