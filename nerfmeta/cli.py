@@ -19,6 +19,8 @@ from nerfmeta.errors import NerfmetaError
 # Order is the order shown in ``nerfmeta --help``.
 COMMAND_MODULES = (
     "nerfmeta.commands.inspect",
+    "nerfmeta.commands.fit",
+    "nerfmeta.commands.make_collection",
 )
 
 

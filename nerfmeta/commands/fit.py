@@ -1,0 +1,114 @@
+"""``nerfmeta fit``: fit a radiance field to a scene and report PSNR against iterations and time."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import fields
+from pathlib import Path
+
+from tqdm import tqdm
+
+from nerfmeta.data.registry import parse_background
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.registry import BACKBONES
+from nerfmeta.fit.loop import FitConfig, StepRecord
+from nerfmeta.fit.run import RunConfig, run_fit
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    defaults = FitConfig()
+    p = subparsers.add_parser(
+        "fit",
+        help="fit a radiance field to a scene; writes metrics, plots, renders and checkpoints",
+        description="Fit a radiance field to SCENE's training views, evaluate on its test views, and write "
+        "config.json, metrics.jsonl, summary.json, psnr_vs_iter.png, psnr_vs_time.png and renders/ into RUN.",
+    )
+    p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file)")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
+    p.add_argument("--backbone", choices=sorted(BACKBONES), default="grid", help="grid (DirectVoxGO-style) or nerf (MLP); default grid")
+    p.add_argument("--iters", type=int, default=defaults.iters, metavar="N", help=f"maximum iterations (default {defaults.iters})")
+    p.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop after S seconds of optimisation")
+    p.add_argument("--target-psnr", type=float, default=None, metavar="DB", help="stop once test PSNR reaches DB")
+    p.add_argument("--downscale", type=float, default=1.0, metavar="F", help="reduce images by F >= 1 (default 1)")
+    p.add_argument("--background", default="white", metavar="COLOUR", help="white, black or R,G,B (default white)")
+    p.add_argument("--seed", type=int, default=defaults.seed, help=f"seed of weights, rays and jitter (default {defaults.seed})")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    p.add_argument("--batch-rays", type=int, default=defaults.batch_rays, metavar="N", help=f"rays per iteration (default {defaults.batch_rays})")
+    p.add_argument("--eval-every", type=int, default=defaults.eval_every, metavar="N", help=f"test PSNR every N iterations, 0 = only at the end (default {defaults.eval_every})")
+    p.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every, metavar="N", help=f"checkpoint every N iterations (default {defaults.checkpoint_every})")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a backbone config field, e.g. --set num_voxels=512000 (repeatable)")
+    p.add_argument("--resume", action="store_true", help="continue the run in RUN from its checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing RUN folder")
+    p.set_defaults(func=run)
+
+
+def parse_overrides(items: list[str], backbone: str) -> dict:
+    """``KEY=VALUE`` strings -> dict; values parsed as JSON where possible (numbers, lists, booleans)."""
+    names = {f.name for f in fields(BACKBONES[backbone][0])}
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in names:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(names))}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def _check_positive(name: str, value: float | None, allow_zero: bool = False) -> None:
+    if value is not None and (value < 0 or (value == 0 and not allow_zero)):
+        raise ConfigError(f"{name} {value}: must be {'>= 0' if allow_zero else '> 0'}")
+
+
+class ProgressBar:
+    """tqdm bar over iterations (or over the time budget when one is given)."""
+
+    def __init__(self, fit_config: FitConfig):
+        self.budget = fit_config.time_budget_s
+        total = round(self.budget, 1) if self.budget else fit_config.iters
+        unit = "s" if self.budget else "it"
+        self.bar = tqdm(total=total, unit=unit, dynamic_ncols=True, leave=True)
+
+    def __call__(self, record: StepRecord, model, state) -> None:
+        if self.budget:
+            self.bar.n = round(min(record.time_s, self.budget), 1)
+        else:
+            self.bar.n = record.iter
+        post = {"iter": record.iter, "psnr": f"{record.train_psnr:.2f}", "t": f"{record.time_s:.1f}s",
+                "spr": f"{record.samples_per_ray:.0f}"}
+        if record.test_psnr is not None:
+            post["test"] = f"{record.test_psnr:.2f}"
+        self.bar.set_postfix(post, refresh=False)
+        self.bar.refresh()
+        if record.event:
+            self.bar.write(f"iter {record.iter}: {record.event}")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    for name, value, zero_ok in (("--iters", args.iters, False), ("--time-budget", args.time_budget, False),
+                                 ("--batch-rays", args.batch_rays, False), ("--eval-every", args.eval_every, True),
+                                 ("--checkpoint-every", args.checkpoint_every, True)):
+        _check_positive(name, value, zero_ok)
+    fit_config = FitConfig(
+        iters=args.iters, time_budget_s=args.time_budget, target_psnr=args.target_psnr, batch_rays=args.batch_rays,
+        seed=args.seed, eval_every=args.eval_every, checkpoint_every=args.checkpoint_every,
+    )
+    config = RunConfig(
+        scene=str(Path(args.scene)), backbone=args.backbone, model=parse_overrides(args.set, args.backbone),
+        fit=fit_config, downscale=args.downscale, background=parse_background(args.background), device=args.device,
+    )
+    bar = ProgressBar(fit_config)
+    try:
+        summary = run_fit(config, args.out, resume=args.resume, overwrite=args.overwrite, callbacks=[bar])
+    finally:
+        bar.close()
+    print(f"test PSNR {summary['test_psnr']} dB, SSIM {summary['test_ssim']}, {summary['iters']} iterations in "
+          f"{summary['time_s']:.1f} s ({summary['stop_reason']}), {summary['samples_per_ray']} samples/ray")
+    print(f"results in {args.out}/ (summary.json, metrics.jsonl, psnr_vs_iter.png, psnr_vs_time.png, renders/)")
+    return 0

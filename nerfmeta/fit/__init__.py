@@ -1,0 +1,1 @@
+"""The one fit loop, its ray sampler, checkpoints, evaluation and run folders."""

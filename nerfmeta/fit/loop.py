@@ -1,0 +1,237 @@
+"""The one fit loop, for every backbone and every initialisation.
+
+Differences between scratch, transfer and meta-initialised fits are data: the model passed in
+(its parameters and frozen layers) and the :class:`FitConfig`. Logging, progress bars and
+checkpoints are callbacks, never forks of the loop. Time is measured on the optimisation only:
+evaluation and checkpoint writing are excluded from ``time_s`` and reported separately.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Protocol, Sequence
+
+import torch
+
+from nerfmeta.data.scene import Scene
+from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fit.evaluate import EvalResult, evaluate_views
+from nerfmeta.fit.sampler import RaySampler
+from nerfmeta.metrics import mse_to_psnr
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Optimisation settings shared by every backbone and initialisation."""
+
+    iters: int = 3000
+    """Maximum number of iterations."""
+    time_budget_s: float | None = None
+    """Stop once this much optimisation time (seconds, evaluation excluded) has passed."""
+    target_psnr: float | None = None
+    """Stop at the first evaluation whose test PSNR reaches this (dB)."""
+    batch_rays: int = 4096
+    """Rays per iteration."""
+    seed: int = 0
+    """Seed of the ray sampler and of sample jitter."""
+    lr_decay: float = 0.1
+    """Learning rates decay exponentially to this fraction at the end (of iters or of the time budget)."""
+    adam_eps: float = 1e-8
+    """Adam's epsilon."""
+    eval_every: int = 500
+    """Evaluate test PSNR every this many iterations (0: only at the end)."""
+    eval_views: int = 4
+    """Test views rendered at intermediate evaluations (0: all); the final evaluation uses all."""
+    checkpoint_every: int = 500
+    """Write a checkpoint every this many iterations (0: only at the end)."""
+    chunk_rays: int = 16384
+    """Rays rendered at once during evaluation."""
+
+
+@dataclass
+class StepRecord:
+    """One logged iteration; ``test_psnr`` only where evaluated, ``event`` where the model changed."""
+
+    iter: int
+    time_s: float
+    train_psnr: float
+    samples_per_ray: float
+    lr_scale: float
+    test_psnr: float | None = None
+    event: str | None = None
+
+    def as_json(self) -> dict:
+        out = {"iter": self.iter, "time_s": round(self.time_s, 4), "train_psnr": round(self.train_psnr, 4),
+               "samples_per_ray": round(self.samples_per_ray, 2), "lr_scale": round(self.lr_scale, 5)}
+        if self.test_psnr is not None:
+            out["test_psnr"] = round(self.test_psnr, 4)
+        if self.event:
+            out["event"] = self.event
+        return out
+
+
+@dataclass
+class FitState:
+    """Everything needed to continue a fit exactly: iteration, clock, RNG and optimiser."""
+
+    step: int = 0
+    time_s: float = 0.0
+    eval_time_s: float = 0.0
+    rng_state: torch.Tensor | None = None
+    optimizer_state: dict | None = None
+    last_test_psnr: float | None = None
+    stop_reason: str = ""
+
+
+class Callback(Protocol):
+    def __call__(self, record: StepRecord, model: RadianceModel, state: FitState) -> None: ...
+
+
+@dataclass
+class FitResult:
+    state: FitState
+    final: EvalResult | None
+    history: list[StepRecord] = field(default_factory=list)
+
+
+def build_optimizer(model: RadianceModel, config: FitConfig) -> torch.optim.Adam:
+    """Adam with one parameter group per model LR group; frozen parameters are left out."""
+    params = dict(model.named_parameters())
+    groups = []
+    for g in model.param_groups():
+        ps = [params[n] for n in g.param_names if params[n].requires_grad]
+        if ps:
+            groups.append({"params": ps, "lr": g.lr, "base_lr": g.lr, "name": g.name})
+    if not groups:
+        raise ValueError("every parameter is frozen: nothing to optimise")
+    return torch.optim.Adam(groups, eps=config.adam_eps)
+
+
+def lr_scale(config: FitConfig, step: int, time_s: float) -> float:
+    """Exponential decay factor at the current progress (by iterations or by the time budget)."""
+    progress = step / max(1, config.iters)
+    if config.time_budget_s:
+        progress = max(progress, time_s / config.time_budget_s)
+    return config.lr_decay ** min(1.0, progress)
+
+
+def fit(
+    model: RadianceModel,
+    scene: Scene,
+    config: FitConfig,
+    *,
+    background: torch.Tensor,
+    callbacks: Sequence[Callback] = (),
+    state: FitState | None = None,
+    should_checkpoint: Callable[[FitState], None] | None = None,
+) -> FitResult:
+    """Fit ``model`` to the training views of ``scene``.
+
+    Args:
+        model: any backbone, on the device to train on (its frozen layers already frozen).
+        scene: the scene; its ``train`` split is fitted and its ``test`` split evaluated.
+        config: optimisation settings.
+        background: (3,) RGB the scene was composited on, on the model's device.
+        callbacks: called after every iteration with the :class:`StepRecord`.
+        state: a state to resume from (from a checkpoint), else a fresh start.
+        should_checkpoint: called with the state at checkpoint iterations and at the end
+            (after the optimiser state has been captured).
+
+    Returns:
+        The final state, the final evaluation on all test views, and the per-iteration history.
+    """
+    device = background.device
+    sampler = RaySampler(scene, "train", device)
+    test_views = scene.splits.get("test", ())
+    state = state or FitState()
+    gen = torch.Generator().manual_seed(config.seed)
+    if state.rng_state is not None:
+        gen.set_state(state.rng_state)
+    model.train()
+    optimizer = build_optimizer(model, config)
+    if state.optimizer_state is not None:
+        optimizer.load_state_dict(state.optimizer_state)
+    history: list[StepRecord] = []
+    is_cuda = device.type == "cuda"
+
+    final: EvalResult | None = None
+
+    def final_eval() -> EvalResult:
+        t_eval = time.perf_counter()
+        result = evaluate_views(model, scene, list(test_views), background, chunk=config.chunk_rays)
+        state.eval_time_s += time.perf_counter() - t_eval
+        state.last_test_psnr = result.psnr
+        return result
+
+    def capture() -> None:
+        state.rng_state = gen.get_state()
+        state.optimizer_state = optimizer.state_dict()
+
+    while True:
+        if state.step >= config.iters:
+            state.stop_reason = f"reached {config.iters} iterations"
+            break
+        if config.time_budget_s is not None and state.time_s >= config.time_budget_s:
+            state.stop_reason = f"time budget of {config.time_budget_s:g} s used"
+            break
+        if config.target_psnr is not None and state.last_test_psnr is not None and state.last_test_psnr >= config.target_psnr:
+            state.stop_reason = f"target PSNR {config.target_psnr:g} dB reached"
+            break
+        t0 = time.perf_counter()
+        event = model.begin_step(state.step, config.iters)
+        if event.params_changed:
+            optimizer = build_optimizer(model, config)
+        if event.message:
+            log.info("iter %d: %s", state.step, event.message)
+        scale = lr_scale(config, state.step, state.time_s)
+        for g in optimizer.param_groups:
+            g["lr"] = g["base_lr"] * scale
+        batch = sampler.sample(config.batch_rays, gen)
+        out = model(batch, background=background, train=True, generator=gen)
+        mse = torch.mean((out.rgb - batch.target) ** 2)
+        loss = mse
+        reg = model.regularization()
+        if reg is not None:
+            loss = loss + reg
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if is_cuda:
+            torch.cuda.synchronize(device)
+        state.time_s += time.perf_counter() - t0
+        state.step += 1
+        record = StepRecord(
+            iter=state.step,
+            time_s=state.time_s,
+            train_psnr=float(mse_to_psnr(mse.detach())),
+            samples_per_ray=out.samples_evaluated / len(batch),
+            lr_scale=scale,
+            event=event.message or None,
+        )
+        last = state.step >= config.iters or (config.time_budget_s is not None and state.time_s >= config.time_budget_s)
+        if test_views and last:
+            final = final_eval()
+            record.test_psnr = final.psnr
+        elif test_views and config.eval_every > 0 and state.step % config.eval_every == 0:
+            views = list(test_views) if config.eval_views <= 0 else list(test_views)[: config.eval_views]
+            t_eval = time.perf_counter()
+            ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays)
+            state.eval_time_s += time.perf_counter() - t_eval
+            record.test_psnr = state.last_test_psnr = ev.psnr
+        history.append(record)
+        for cb in callbacks:
+            cb(record, model, state)
+        if should_checkpoint and config.checkpoint_every > 0 and state.step % config.checkpoint_every == 0:
+            capture()
+            should_checkpoint(state)
+    if test_views and final is None:
+        final = final_eval()
+    capture()
+    if should_checkpoint:
+        should_checkpoint(state)
+    return FitResult(state, final, history)

@@ -1,0 +1,229 @@
+"""A fit run folder: what ``nerfmeta fit`` writes, and how it resumes.
+
+Layout of ``RUN/``::
+
+    config.json              everything needed to rerun (scene, backbone config, fit config, ...)
+    metrics.jsonl            one line per iteration: iter, time_s, train_psnr[, test_psnr][, event]
+    checkpoint.safetensors   latest checkpoint (model, optimiser, RNG, fit state), atomic
+    summary.json             final figures (written at the end)
+    psnr_vs_iter.png, psnr_vs_time.png
+    renders/test_XXX.png     ground truth | prediction, for the first test views
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import resource
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import imageio.v3 as iio
+import torch
+
+from nerfmeta.data import load_scene
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.registry import build_model, config_from_dict, default_config
+from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
+from nerfmeta.fit.loop import Callback, FitConfig, FitResult, StepRecord, fit
+from nerfmeta.io import atomic_path, to_jsonable, write_json
+from nerfmeta.report.plots import image_strip, plot_psnr_curves
+
+log = logging.getLogger(__name__)
+
+RENDERED_VIEWS = 4
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything that defines a fit run; saved as ``config.json``."""
+
+    scene: str
+    """Scene folder or file."""
+    backbone: str = "grid"
+    """Backbone name (``grid`` or ``nerf``)."""
+    model: dict[str, Any] = field(default_factory=dict)
+    """Backbone config overrides (JSON form); missing keys take the backbone's defaults."""
+    fit: FitConfig = FitConfig()
+    """Optimisation settings."""
+    downscale: float = 1.0
+    """Image downscale factor applied when loading."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Background the RGBA images are composited on (and rendered over)."""
+    device: str = "cpu"
+    """Torch device."""
+    init: str = "scratch"
+    """Where the initial weights come from."""
+    freeze: int = 0
+    """Number of leading layers kept frozen."""
+
+    def model_config(self) -> Any:
+        base = dataclasses.asdict(default_config(self.backbone))
+        return config_from_dict(self.backbone, {**base, **self.model})
+
+    @staticmethod
+    def from_json(data: dict[str, Any]) -> "RunConfig":
+        data = dict(data)
+        data["fit"] = FitConfig(**data.get("fit", {}))
+        data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
+        return RunConfig(**data)
+
+
+class MetricsWriter:
+    """Callback appending one JSON line per iteration to ``metrics.jsonl`` (flushed each line)."""
+
+    def __init__(self, path: Path):
+        self.file = open(path, "a", encoding="utf-8")
+
+    def __call__(self, record: StepRecord, model, state) -> None:
+        self.file.write(json.dumps(record.as_json()) + "\n")
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """The records of a ``metrics.jsonl`` (a torn last line from a kill is ignored)."""
+    out = []
+    p = Path(path)
+    if not p.exists():
+        return out
+    for line in p.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return out
+
+
+def prepare_run_dir(out: Path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse to clobber an existing non-empty run unless asked to (checked before any work)."""
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite cannot be combined")
+    exists = out.exists() and any(out.iterdir()) if out.is_dir() else out.exists()
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    if resume:
+        if not (out / CHECKPOINT_NAME).exists() or not (out / "config.json").exists():
+            raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT_NAME} and config.json there)")
+    elif exists and not overwrite:
+        raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it or --resume to continue it")
+
+
+def run_fit(
+    config: RunConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    callbacks: Sequence[Callback] = (),
+) -> dict[str, Any]:
+    """Fit a scene into the run folder ``out`` and return the summary (also ``summary.json``).
+
+    With ``resume=True`` the saved ``config.json`` is used and the fit continues from the
+    checkpoint; ``config`` only has to name the same scene.
+    """
+    out = Path(out)
+    prepare_run_dir(out, resume=resume, overwrite=overwrite)
+    if resume:
+        saved = RunConfig.from_json(json.loads((out / "config.json").read_text()))
+        if Path(saved.scene).resolve() != Path(config.scene).resolve():
+            raise ConfigError(f"{out} was a run on {saved.scene}, not {config.scene}")
+        config = saved
+    model_config = config.model_config()
+    if config.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
+    scene = load_scene(config.scene, downscale=config.downscale, background=config.background)
+    if not scene.splits.get("train"):
+        raise ConfigError(f"{config.scene}: the scene has no training views")
+    device = torch.device(config.device)
+    model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
+    frozen = model.freeze_first(config.freeze) if config.freeze else []
+
+    if overwrite and out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    state = None
+    if resume:
+        ckpt = load_checkpoint(out / CHECKPOINT_NAME)
+        restore_model(model, ckpt)
+        state = ckpt.state
+        kept = [r for r in read_metrics(out / "metrics.jsonl") if r["iter"] <= state.step]
+        with atomic_path(out / "metrics.jsonl") as tmp:
+            tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    else:
+        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config)})
+    writer = MetricsWriter(out / "metrics.jsonl")
+    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    try:
+        result = fit(
+            model, scene, config.fit, background=background, callbacks=[writer, *callbacks], state=state,
+            should_checkpoint=lambda st: save_checkpoint(out / CHECKPOINT_NAME, model, st),
+        )
+    finally:
+        writer.close()
+    summary = summarize(config, scene, model, result, frozen, out)
+    write_outputs(out, summary, result)
+    return summary
+
+
+def _optimizer_description(model, fit_config: FitConfig, frozen: list[str]) -> dict[str, Any]:
+    return {
+        "name": "Adam",
+        "eps": fit_config.adam_eps,
+        "lr_groups": {g.name: g.lr for g in model.param_groups()},
+        "lr_decay": f"exponential to x{fit_config.lr_decay:g} at the end of the iterations or time budget",
+        "batch_rays": fit_config.batch_rays,
+        "frozen_parameters": frozen,
+    }
+
+
+def summarize(config: RunConfig, scene, model, result: FitResult, frozen: list[str], out: Path) -> dict[str, Any]:
+    """The figures of a finished fit (``summary.json``)."""
+    records = read_metrics(out / "metrics.jsonl")
+    final = result.final
+    train_spr = [r["samples_per_ray"] for r in records]
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "scene": config.scene,
+        "category": scene.category,
+        "backbone": config.backbone,
+        "init": config.init,
+        "freeze": config.freeze,
+        "iters": result.state.step,
+        "time_s": round(result.state.time_s, 3),
+        "eval_time_s": round(result.state.eval_time_s, 3),
+        "stop_reason": result.state.stop_reason,
+        "test_views": len(scene.splits.get("test", ())),
+        "holdout": scene.holdout,
+        "resolution": [scene.height, scene.width],
+        "test_psnr": None if final is None else round(final.psnr, 4),
+        "test_ssim": None if final is None or final.ssim is None else round(final.ssim, 5),
+        "test_lpips": None,
+        "test_lpips_note": "not computed: LPIPS needs local weights (see nerfmeta.metrics.lpips_available)",
+        "samples_per_ray": None if final is None else round(final.samples_per_ray, 2),
+        "train_samples_per_ray": round(sum(train_spr) / len(train_spr), 2) if train_spr else None,
+        "peak_rss_mb": round(peak_kb / 1024 if sys.platform != "darwin" else peak_kb / 2**20, 1),
+        "device": config.device,
+        "optimizer": _optimizer_description(model, config.fit, frozen),
+        "n_parameters": sum(p.numel() for p in model.parameters()),
+    }
+
+
+def write_outputs(out: Path, summary: dict[str, Any], result: FitResult) -> None:
+    records = read_metrics(out / "metrics.jsonl")
+    name = f"{summary['backbone']} ({summary['init']})"
+    title = f"{Path(summary['scene']).name}: {summary['backbone']}, {summary['iters']} iters"
+    plot_psnr_curves({name: records}, "iter", out / "psnr_vs_iter.png", title=title)
+    plot_psnr_curves({name: records}, "time_s", out / "psnr_vs_time.png", title=title)
+    if result.final is not None:
+        for r in result.final.renders[:RENDERED_VIEWS]:
+            strip = image_strip([r.target.numpy(), r.rgb.numpy()])
+            with atomic_path(out / "renders" / f"test_{r.view:03d}.png") as tmp:
+                iio.imwrite(tmp, strip, extension=".png")
+    write_json(out / "summary.json", summary)

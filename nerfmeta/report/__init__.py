@@ -1,0 +1,1 @@
+"""Plots and reports: error against iterations and against wall-clock time."""
