@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.inspect",
     "nerfmeta.commands.fit",
     "nerfmeta.commands.make_collection",
+    "nerfmeta.commands.demo",
 )
 
 

@@ -1,0 +1,167 @@
+"""The fit loop and `nerfmeta fit`: smoke tests per backbone, resume after a kill, freezing, bad input."""
+
+import json
+
+import pytest
+import torch
+
+from nerfmeta.cli import main
+from nerfmeta.data import load_scene
+from nerfmeta.fields.registry import build_model, config_from_dict, default_config
+from nerfmeta.fit.loop import FitConfig, fit
+from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
+
+GRID_FAST = ["--set", "coarse_iters=15", "--set", "growth_steps=[10]", "--set", "num_voxels=27000",
+             "--set", "coarse_num_voxels=4096"]
+NERF_FAST = ["--set", "depth=2", "--set", "width=32", "--set", "skips=[]", "--set", "n_samples=16",
+             "--set", "pos_freqs=4", "--set", "lr=0.01"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("backbone,extra", [("grid", GRID_FAST), ("nerf", NERF_FAST)])
+def test_fit_cli_writes_run_folder_and_psnr_rises(tiny_scene, tmp_path, backbone, extra):
+    out = tmp_path / "run"
+    code = main(["fit", str(tiny_scene), "--out", str(out), "--backbone", backbone, "--iters", "90",
+                 "--batch-rays", "512", "--eval-every", "20", *extra])
+    assert code == 0
+    for name in ("config.json", "metrics.jsonl", "summary.json", "psnr_vs_iter.png", "psnr_vs_time.png",
+                 "checkpoint.safetensors"):
+        assert (out / name).is_file(), name
+    assert list((out / "renders").glob("test_*.png"))
+    records = read_metrics(out / "metrics.jsonl")
+    assert [r["iter"] for r in records] == list(range(1, 91))
+    assert all({"iter", "time_s", "train_psnr"} <= set(r) for r in records)
+    assert all(b["time_s"] >= a["time_s"] for a, b in zip(records, records[1:]))
+    tests = [r["test_psnr"] for r in records if "test_psnr" in r]
+    assert len(tests) == 5  # iterations 20, 40, 60, 80 and the final 90
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("scene", "backbone", "init", "iters", "time_s", "test_psnr", "test_ssim", "samples_per_ray", "peak_rss_mb"):
+        assert key in summary, key
+    assert summary["backbone"] == backbone and summary["iters"] == 90
+    assert summary["test_psnr"] == tests[-1]
+    first_train = sum(r["train_psnr"] for r in records[:5]) / 5
+    last_train = sum(r["train_psnr"] for r in records[-5:]) / 5
+    assert last_train > first_train + 2.0, (first_train, last_train)
+    config = json.loads((out / "config.json").read_text())
+    assert config["backbone"] == backbone and config["fit"]["iters"] == 90
+
+
+def _grid_run_config(scene, iters, checkpoint_every):
+    return RunConfig(
+        scene=str(scene), backbone="grid",
+        model={"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5},
+        fit=FitConfig(iters=iters, batch_rays=256, eval_every=0, checkpoint_every=checkpoint_every),
+    )
+
+
+class _Kill(Exception):
+    pass
+
+
+def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path):
+    # uninterrupted
+    full = tmp_path / "full"
+    run_fit(_grid_run_config(tiny_scene, 16, 4), full)
+    # killed at iteration 10 (last checkpoint at 8), then resumed
+    killed = tmp_path / "killed"
+
+    def kill_at_10(record, model, state):
+        if record.iter == 10:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        run_fit(_grid_run_config(tiny_scene, 16, 4), killed, callbacks=[kill_at_10])
+    assert not (killed / "summary.json").exists()
+    run_fit(_grid_run_config(tiny_scene, 16, 4), killed, resume=True)
+    from safetensors.torch import load_file
+
+    a = load_file(str(full / "checkpoint.safetensors"))
+    b = load_file(str(killed / "checkpoint.safetensors"))
+    assert sorted(a) == sorted(b)
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
+    ra, rb = read_metrics(full / "metrics.jsonl"), read_metrics(killed / "metrics.jsonl")
+    assert [r["iter"] for r in rb] == list(range(1, 17))
+    assert [r["train_psnr"] for r in ra] == [r["train_psnr"] for r in rb]
+
+
+@pytest.mark.parametrize("backbone,overrides,k", [
+    ("nerf", {"depth": 3, "width": 32, "skips": [], "n_samples": 16}, 2),
+    ("grid", {"coarse_iters": 0, "growth_steps": [], "num_voxels": 4096}, 1),
+])
+def test_freezing_first_layers_leaves_exactly_them_unchanged(tiny_scene, backbone, overrides, k):
+    scene = load_scene(tiny_scene)
+    config = config_from_dict(backbone, {**vars_of(default_config(backbone)), **overrides})
+    model = build_model(backbone, config, scene.bounds, seed=0)
+    frozen = set(model.freeze_first(k))
+    expected = {n for layer in model.layers()[:k] for n in layer.param_names}
+    assert frozen == expected and frozen
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    fit(model, scene, FitConfig(iters=5, batch_rays=256, eval_every=0), background=torch.ones(3))
+    for name, p in model.named_parameters():
+        if name in frozen:
+            assert torch.equal(p, before[name]), name
+            assert p.grad is None, name  # no gradient was computed for it at all
+        else:
+            assert not torch.equal(p, before[name]), name
+
+
+def vars_of(config):
+    import dataclasses
+
+    return dataclasses.asdict(config)
+
+
+def test_freeze_beyond_layer_count_is_a_clear_error(tiny_scene, tmp_path, capsys):
+    code = main(["fit", str(tiny_scene), "--out", str(tmp_path / "r"), "--backbone", "nerf", "--iters", "1", *NERF_FAST,
+                 "--set", "depth=2"])
+    assert code == 0
+    from nerfmeta.errors import ConfigError
+
+    scene = load_scene(tiny_scene)
+    model = build_model("nerf", default_config("nerf"), scene.bounds, seed=0)
+    with pytest.raises(ConfigError, match="--freeze 99"):
+        model.freeze_first(99)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--iters", "0"], "--iters"),
+    (["--time-budget", "-1"], "--time-budget"),
+    (["--set", "nonsense=1"], "nonsense"),
+    (["--set", "novalue"], "novalue"),
+    (["--resume"], "nothing to resume"),
+    (["--device", "cuda:7"], "cuda"),
+])
+def test_bad_fit_arguments_exit_2_with_one_line(tiny_scene, tmp_path, capsys, args, needle):
+    if needle == "cuda" and torch.cuda.is_available():
+        pytest.skip("CUDA present: --device cuda:7 may be valid")
+    out = tmp_path / "run"
+    code = main(["fit", str(tiny_scene), "--out", str(out), *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len([line for line in err if "error" in line]) == 1 and needle in err[-1]
+    assert "Traceback" not in "\n".join(err)
+    assert not out.exists()
+
+
+def test_existing_run_folder_is_refused_without_overwrite(tiny_scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    code = main(["fit", str(tiny_scene), "--out", str(out), "--iters", "1"])
+    assert code == 2 and "--overwrite" in capsys.readouterr().err
+    assert (out / "keep.txt").read_text() == "mine"
+
+
+def test_missing_scene_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["fit", str(tmp_path / "nope"), "--out", str(out)])
+    assert code == 2 and not out.exists()
+    assert "nope" in capsys.readouterr().err
