@@ -25,12 +25,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 import torch.nn.functional as F
 
 from nerfmeta.render.rays import intersect_aabb
+
+if TYPE_CHECKING:
+    from nerfmeta.collection.shapes import Shape
 
 SdfFn = Callable[[torch.Tensor], torch.Tensor]
 
@@ -411,8 +414,15 @@ def render_views(
     return out.reshape(v_count, height, width, 4)
 
 
-def render_shape(shape, poses: torch.Tensor, focal: float, height: int, width: int, config: RenderConfig = RenderConfig()) -> torch.Tensor:
-    """Render a :class:`~nerfmeta.collection.shapes.Shape`: (V, 4, 4) poses -> (V, H, W, 4) RGBA in [0, 1]."""
+def render_shape(shape: "Shape", poses: torch.Tensor, focal: float, height: int, width: int, config: RenderConfig = RenderConfig()) -> torch.Tensor:
+    """Render a :class:`~nerfmeta.collection.shapes.Shape` (its box padded by 0.02).
+
+    Args:
+        poses: (V, 4, 4) camera-to-world matrices.
+
+    Returns:
+        (V, H, W, 4) RGBA in [0, 1].
+    """
     from nerfmeta.collection.shapes import shape_bounds
 
     aabb = torch.as_tensor(shape_bounds(shape), dtype=torch.float32)

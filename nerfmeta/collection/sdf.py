@@ -355,12 +355,6 @@ def quat_from_matrix(m: np.ndarray) -> Quat:
     return tuple(float(v / n) for v in q)  # type: ignore[return-value]
 
 
-def rotate_vector(q: Sequence[float], v: Sequence[float]) -> Vec3:
-    """``v`` rotated by the quaternion ``q`` (NumPy float64, returned as a tuple)."""
-    out = quat_to_matrix(q) @ np.asarray(v, dtype=np.float64)
-    return (float(out[0]), float(out[1]), float(out[2]))
-
-
 def to_local_xyz(
     x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, position: Sequence[float], matrix: Sequence[Sequence[float]] | None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
