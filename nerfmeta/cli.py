@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.fit",
     "nerfmeta.commands.make_collection",
     "nerfmeta.commands.demo",
+    "nerfmeta.commands.meta_train",
 )
 
 

@@ -1,0 +1,484 @@
+"""A meta-training run folder: what ``nerfmeta meta-train`` writes, and how it resumes.
+
+Layout of ``RUN/``::
+
+    config.json               the MetaConfig (plus the resolved backbone config)
+    metrics.jsonl             one line per meta-step: step, time_s, query_psnr, init_psnr, tasks
+    checkpoint.safetensors    latest checkpoint: parameters, Adam moments, step, clock (atomic)
+    model.safetensors         the meta-learned initialisation, and
+    init.json                 its description (nerfmeta.init format, kind "meta"):
+                              ``nerfmeta fit SCENE --init meta:RUN`` starts from it
+    summary.json              final figures, incl. the held-out adaptation PSNR
+    query_psnr_vs_step.png    query PSNR (after adaptation) against meta-steps
+
+Every file is written atomically, and only by rank 0 of a distributed run. A resumed run
+continues from the checkpoint's step and produces the same parameters as an uninterrupted run
+(tasks are a function of (seed, step), see :mod:`pretrain.meta_tasks`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import torch
+
+from nerfmeta.collection.generate import Collection, load_collection
+from nerfmeta.errors import ConfigError, NerfmetaError
+from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fields.registry import build_model
+from nerfmeta.init import save_init
+from nerfmeta.io import atomic_path, save_tensors, to_jsonable, write_json
+from nerfmeta.metrics import mse_to_psnr
+from pretrain.meta import (
+    CANONICAL_BOUNDS,
+    MetaConfig,
+    evaluate_adaptation,
+    inner_lrs,
+    meta_wrapper,
+    reptile_update,
+    task_direction,
+)
+from pretrain.meta_dist import SINGLE, DistContext
+from pretrain.meta_tasks import TaskSampler, load_task_scenes, select_scenes
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT = "checkpoint.safetensors"
+CONFIG = "config.json"
+METRICS = "metrics.jsonl"
+SUMMARY = "summary.json"
+CURVE = "query_psnr_vs_step.png"
+CHECKPOINT_FORMAT = "nerfmeta-meta-checkpoint-1"
+RESUMABLE_CHANGES = ("meta_steps", "checkpoint_every", "eval_tasks", "device")
+"""Fields a resumed run may change; any other difference from the saved config is refused."""
+
+
+@dataclass
+class MetaStepRecord:
+    """One meta-step (after its outer update).
+
+    Attributes:
+        step: meta-steps done (1-based).
+        time_s: wall time of the meta-steps so far (this run and the runs it resumed).
+        query_psnr: PSNR of the meta-batch's mean query MSE after adaptation.
+        init_psnr: PSNR of the mean support MSE before adaptation (the initialisation's own).
+        tasks: the scenes of the meta-batch, in slot order.
+    """
+
+    step: int
+    time_s: float
+    query_psnr: float
+    init_psnr: float
+    tasks: list[str] = field(default_factory=list)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"step": self.step, "time_s": round(self.time_s, 4), "query_psnr": round(self.query_psnr, 4),
+                "init_psnr": round(self.init_psnr, 4), "tasks": self.tasks}
+
+
+Progress = Callable[[MetaStepRecord], None]
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+def save_meta_checkpoint(path: str | os.PathLike, model: RadianceModel, optimizer: torch.optim.Optimizer | None,
+                         step: int, time_s: float, config: MetaConfig) -> None:
+    """Parameters, buffers, Adam moments, step and clock, atomically; refuses non-finite values."""
+    tensors: dict[str, torch.Tensor] = {}
+    for name, value in model.state_dict().items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise FloatingPointError(f"refusing to checkpoint non-finite values in {name}")
+        tensors[f"model.{name}"] = value
+    names = [n for n, _ in model.named_parameters()]
+    if optimizer is not None:
+        for idx, state in optimizer.state_dict()["state"].items():
+            for key, value in state.items():
+                tensors[f"optim.{names[idx]}.{key}"] = torch.as_tensor(value)
+    meta = {"format": CHECKPOINT_FORMAT, "backbone": model.backbone, "structure": model.structure(), "algo": config.algo,
+            "step": step, "time_s": time_s}
+    save_tensors(path, tensors, metadata={"nerfmeta": json.dumps(meta)})
+
+
+@dataclass(frozen=True)
+class MetaCheckpoint:
+    step: int
+    time_s: float
+    backbone: str
+    model_state: dict[str, torch.Tensor]
+    optim_state: dict[str, dict[str, torch.Tensor]]
+
+
+def load_meta_checkpoint(path: str | os.PathLike) -> MetaCheckpoint:
+    """Read a checkpoint written by :func:`save_meta_checkpoint` (one-line error if unreadable)."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = json.loads((f.metadata() or {}).get("nerfmeta", "{}"))
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as err:  # OSError, JSON errors or safetensors' own error type
+        raise ConfigError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from None
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise ConfigError(f"{path}: not a nerfmeta meta-train checkpoint (format {meta.get('format')!r})")
+    model_state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+    optim: dict[str, dict[str, torch.Tensor]] = {}
+    for key, value in tensors.items():
+        if key.startswith("optim."):
+            name, _, what = key[len("optim."):].rpartition(".")
+            optim.setdefault(name, {})[what] = value
+    return MetaCheckpoint(int(meta["step"]), float(meta["time_s"]), str(meta["backbone"]), model_state, optim)
+
+
+def restore(model: RadianceModel, optimizer: torch.optim.Optimizer | None, ckpt: MetaCheckpoint, path: Path) -> None:
+    """Load a checkpoint into ``model`` and ``optimizer``; one-line error if its backbone or shapes differ."""
+    if ckpt.backbone != model.backbone:
+        raise ConfigError(f"{path}: holds a {ckpt.backbone} model, but this run builds a {model.backbone} model")
+    own = model.state_dict()
+    if set(own) != set(ckpt.model_state):
+        diff = sorted(set(own) ^ set(ckpt.model_state))
+        raise ConfigError(f"{path}: its tensors do not match this {model.backbone} model ({', '.join(diff[:3])} ...)")
+    for name, value in own.items():
+        if tuple(value.shape) != tuple(ckpt.model_state[name].shape):
+            raise ConfigError(f"{path}: {name} has shape {tuple(ckpt.model_state[name].shape)}, "
+                              f"this config builds {tuple(value.shape)}; resume with the run's own settings")
+    device = next(iter(own.values())).device
+    model.load_state_dict({k: v.to(device) for k, v in ckpt.model_state.items()})
+    if optimizer is not None and ckpt.optim_state:
+        names = [n for n, _ in model.named_parameters()]
+        state = {i: {k: v.to(device) if k != "step" else v for k, v in ckpt.optim_state[n].items()}
+                 for i, n in enumerate(names) if n in ckpt.optim_state}
+        optimizer.load_state_dict({"state": state, "param_groups": optimizer.state_dict()["param_groups"]})
+
+
+# ---------------------------------------------------------------------------------------------
+# The run folder
+
+
+def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """The records of a ``metrics.jsonl`` (a torn last line from a kill is ignored)."""
+    out = []
+    p = Path(path)
+    if not p.exists():
+        return out
+    for line in p.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return out
+
+
+def saved_config(out: str | Path) -> MetaConfig:
+    """The :class:`MetaConfig` saved in ``out/config.json``."""
+    path = Path(out) / CONFIG
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"{path}: not readable ({err}); nothing to resume") from None
+    data.pop("model_config", None)
+    return MetaConfig.from_json(data)
+
+
+def resume_config(out: str | Path, overrides: dict[str, Any]) -> MetaConfig:
+    """The saved config of the run in ``out`` with ``overrides`` (the options given again) applied."""
+    return dataclasses.replace(saved_config(out), **overrides)
+
+
+def check_resumable(saved: MetaConfig, config: MetaConfig, out: Path) -> None:
+    """Refuse to resume ``out`` with settings that change what is being learned."""
+    resolved = {"inner_lr": lambda c: c.inner_lr_resolved[0], "inner_lr_groups": lambda c: c.inner_lr_resolved[1],
+                "meta_lr": lambda c: c.outer_lr}  # "unset" and the default it stands for are the same setting
+    for f in dataclasses.fields(MetaConfig):
+        if f.name in RESUMABLE_CHANGES:
+            continue
+        value = resolved.get(f.name, lambda c, name=f.name: getattr(c, name))
+        old, new = value(saved), value(config)
+        if to_jsonable(old) != to_jsonable(new):
+            raise ConfigError(f"{out} was meta-trained with {f.name}={to_jsonable(old)!r}, not {to_jsonable(new)!r}; "
+                              f"resume it with its own settings or start a new --out")
+
+
+def prepare_run_dir(out: Path, config: MetaConfig, *, resume: bool, overwrite: bool) -> MetaCheckpoint | None:
+    """Check ``out`` can hold this run (before any work); on resume, read and check its checkpoint."""
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite cannot be combined")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    non_empty = out.is_dir() and any(out.iterdir())
+    if resume:
+        if not (out / CHECKPOINT).is_file() or not (out / CONFIG).is_file():
+            raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT} and {CONFIG} there)")
+        check_resumable(saved_config(out), config, out)
+        return load_meta_checkpoint(out / CHECKPOINT)
+    if non_empty and not overwrite:
+        raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it or --resume to continue it")
+    if non_empty and not ((out / CONFIG).is_file() or (out / CHECKPOINT).is_file()):
+        raise ConfigError(f"{out}: is not a meta-train run folder; --overwrite only replaces one")
+    return None
+
+
+def training_scenes(collection: Collection, config: MetaConfig) -> list:
+    """The scenes tasks are drawn from (the collection's train split); at least two."""
+    records = select_scenes(collection, "train", config.categories)
+    if len(records) < 2:
+        names = ", ".join(r.name for r in records) or "none"
+        raise ConfigError(f"{collection.root}: {len(records)} training scene{'s' if len(records) != 1 else ''} ({names}); "
+                          "meta-learning needs at least 2 (generate more with make-collection --scenes-per-category)")
+    return records
+
+
+def held_out_scenes(collection: Collection, config: MetaConfig) -> list:
+    """Up to ``eval_tasks`` scenes of the val split (else the test split), spread evenly over the sorted names."""
+    records = select_scenes(collection, "val", config.categories) or select_scenes(collection, "test", config.categories)
+    n = min(config.eval_tasks, len(records))
+    return [records[(i * len(records)) // n] for i in range(n)] if n else []
+
+
+def build_meta_model(config: MetaConfig, device: torch.device) -> RadianceModel:
+    """The initial model: the backbone config of ``config``, in the canonical [-1, 1]^3 box, weights from ``seed``."""
+    bounds = torch.tensor(CANONICAL_BOUNDS, dtype=torch.float32)
+    return build_model(config.backbone, config.model_config(), bounds, seed=config.seed, device=device)
+
+
+def build_outer_optimizer(model: RadianceModel, config: MetaConfig) -> torch.optim.Adam | None:
+    """Adam over every parameter for maml/fomaml (``meta_lr``); None for Reptile (its own step)."""
+    if config.algo == "reptile":
+        return None
+    return torch.optim.Adam(model.parameters(), lr=config.outer_lr)
+
+
+# ---------------------------------------------------------------------------------------------
+# Meta-training
+
+
+def meta_step(model: RadianceModel, optimizer: torch.optim.Optimizer | None, sampler: TaskSampler, step: int,
+              config: MetaConfig, lrs: dict[str, float], background: torch.Tensor, dist: DistContext = SINGLE,
+              ) -> tuple[float, float, list[str]]:
+    """One outer step of ``config.algo`` over meta-batch ``step``; this process takes its slots.
+
+    Returns:
+        the meta-batch's mean query MSE after adaptation, mean support MSE before it, and the
+        names of this process's tasks.
+    """
+    params = list(model.parameters())
+    meta = meta_wrapper(model, config.engine, lrs, first_order=config.algo != "maml")
+    total = [torch.zeros_like(p) for p in params]
+    query_sum = init_sum = 0.0
+    tasks = sampler.tasks(step, config.meta_batch, dist.rank, dist.world_size)
+    for task in tasks:
+        direction, adaptation = task_direction(config.algo, meta, params, task, config.inner_steps,
+                                               background=background, jitter=config.jitter)
+        for acc, d in zip(total, direction):
+            acc.add_(d.detach())
+        query_sum += float(adaptation.query_mse.detach())
+        init_sum += adaptation.support_mse[0]
+    flat = torch.cat([t.reshape(-1) for t in total] + [torch.tensor([query_sum, init_sum], dtype=total[0].dtype, device=total[0].device)])
+    dist.all_reduce_sum_(flat)
+    flat /= config.meta_batch
+    if not bool(torch.isfinite(flat).all()):
+        raise NerfmetaError(f"meta-step {step + 1}: the meta-gradient is not finite; lower --inner-lr or --meta-lr")
+    mean = list(torch.split(flat[:-2], [p.numel() for p in params]))
+    with torch.no_grad():
+        if optimizer is None:
+            reptile_update(params, [m.view_as(p) for m, p in zip(mean, params)], config.outer_lr)
+        else:
+            for p, m in zip(params, mean):
+                p.grad = m.view_as(p).clone()
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+    return float(flat[-2]), float(flat[-1]), [t.name for t in tasks]
+
+
+def meta_train(
+    config: MetaConfig,
+    collection: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    dist: DistContext = SINGLE,
+) -> dict[str, Any]:
+    """Meta-learn an initialisation over a collection's training scenes into the run folder ``out``.
+
+    Args:
+        config: the run's settings (validated before any work).
+        collection: a collection folder or its ``collection.json``.
+        out: the run folder: new or empty, or with ``overwrite`` a previous run to replace, or with
+            ``resume`` a run to continue (``config`` must then equal its saved one, except for
+            :data:`RESUMABLE_CHANGES`; see :func:`resume_config`).
+        progress: called on rank 0 after every meta-step.
+        dist: this process's place in a distributed run (:func:`pretrain.meta_dist.distributed_from_env`).
+
+    Returns:
+        the summary (also ``summary.json``; rank 0's, the others return the same figures
+        without the held-out evaluation).
+    """
+    config.validate()
+    out = Path(out)
+    coll = load_collection(collection)
+    train_records = training_scenes(coll, config)
+    eval_records = held_out_scenes(coll, config)
+    device = dist.device(config.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
+
+    model = build_meta_model(config, device)
+    optimizer = build_outer_optimizer(model, config)
+    lrs = inner_lrs(model, *config.inner_lr_resolved)
+
+    def prepare() -> tuple[int, float]:
+        ckpt = prepare_run_dir(out, config, resume=resume, overwrite=overwrite)
+        if ckpt is None:
+            return 0, 0.0
+        restore(model, optimizer, ckpt, out / CHECKPOINT)
+        return ckpt.step, ckpt.time_s
+
+    start, time_s = dist.broadcast_object(dist.on_main(prepare))
+    if resume and not dist.is_main:  # rank 0 has checked the checkpoint: the same file loads here
+        restore(model, optimizer, load_meta_checkpoint(out / CHECKPOINT), out / CHECKPOINT)
+    background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    sampler = TaskSampler(load_task_scenes(coll, train_records, device=device, downscale=config.downscale,
+                                           background=config.background), config.seed, config.support_rays, config.query_rays)
+
+    def start_files() -> None:
+        if overwrite and out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True, exist_ok=True)
+        if resume:
+            kept = [r for r in read_metrics(out / METRICS) if r["step"] <= start]
+            with atomic_path(out / METRICS) as tmp:
+                tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
+        else:
+            write_json(out / CONFIG, {**to_jsonable(config), "model_config": to_jsonable(config.model_config())})
+
+    dist.on_main(start_files)  # only now, once every input has been read and checked
+    if config.meta_batch < dist.world_size:
+        log.warning("meta-batch %d is smaller than the %d processes: some processes idle", config.meta_batch, dist.world_size)
+    log.info("meta-training %s/%s on %d scenes, %d process(es), from step %d", config.backbone, config.algo,
+             len(train_records), dist.world_size, start)
+
+    metrics = open(out / METRICS, "a", encoding="utf-8") if dist.is_main else None
+    try:
+        for step in range(start, config.meta_steps):
+            t0 = time.perf_counter()
+            query_mse, init_mse, _ = meta_step(model, optimizer, sampler, step, config, lrs, background, dist)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            time_s += time.perf_counter() - t0
+            done = step + 1
+            if not dist.is_main:
+                continue
+            names = [sampler.scenes[i].record.name for i in sampler.scene_indices(step, config.meta_batch)]
+            record = MetaStepRecord(done, time_s, float(mse_to_psnr(query_mse)), float(mse_to_psnr(init_mse)), names)
+            metrics.write(json.dumps(record.as_json()) + "\n")
+            metrics.flush()
+            if progress is not None:
+                progress(record)
+            if config.checkpoint_every > 0 and done % config.checkpoint_every == 0 and done < config.meta_steps:
+                save_meta_checkpoint(out / CHECKPOINT, model, optimizer, done, time_s, config)
+    finally:
+        if metrics is not None:
+            metrics.close()
+
+    def finish() -> dict[str, Any]:
+        save_meta_checkpoint(out / CHECKPOINT, model, optimizer, max(start, config.meta_steps), time_s, config)
+        return write_outputs(out, config, model, coll, train_records, eval_records, lrs, time_s, dist.world_size, background)
+
+    summary = dist.on_main(finish)
+    dist.barrier()
+    return summary if summary is not None else {"meta_steps": config.meta_steps, "time_s": time_s}
+
+
+def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Collection, train_records: Sequence,
+                  eval_records: Sequence, lrs: dict[str, float], time_s: float, world_size: int,
+                  background: torch.Tensor) -> dict[str, Any]:
+    """The initialisation (``nerfmeta.init`` format), the held-out evaluation, the curve and ``summary.json``."""
+    records = read_metrics(out / METRICS)
+    last = records[-10:]
+    final_query = sum(r["query_psnr"] for r in last) / len(last) if last else None
+    held_out = None
+    if eval_records:
+        device = background.device
+        scenes = load_task_scenes(coll, eval_records, device=device, downscale=config.downscale, background=config.background)
+        tasks = TaskSampler(scenes, config.seed, config.support_rays, config.query_rays).eval_tasks(len(scenes))
+        before, after = evaluate_adaptation(model, tasks, config.inner_steps, lrs, background=background, engine="torchfunc")
+        held_out = {"split": eval_records[0].split, "scenes": [r.name for r in eval_records],
+                    "query_psnr_before": round(float(mse_to_psnr(before)), 4),
+                    "query_psnr_after": round(float(mse_to_psnr(after)), 4), "inner_steps": config.inner_steps}
+    group_lrs = {g.name: lrs[g.param_names[0]] for g in model.param_groups()}
+    summary = {
+        "algo": config.algo,
+        "engine": config.engine,
+        "backbone": config.backbone,
+        "inner_steps": config.inner_steps,
+        "inner_lr": group_lrs,
+        "meta_lr": config.outer_lr,
+        "outer_update": "reptile step" if config.algo == "reptile" else "Adam",
+        "meta_batch": config.meta_batch,
+        "support_rays": config.support_rays,
+        "query_rays": config.query_rays,
+        "meta_steps": records[-1]["step"] if records else 0,
+        "scenes": [r.name for r in train_records],
+        "categories": sorted({r.category for r in train_records}),
+        "collection": str(coll.root),
+        "seed": config.seed,
+        "final_query_psnr": None if final_query is None else round(final_query, 4),
+        "final_query_psnr_note": "mean over the last 10 meta-steps of the meta-batch query PSNR after adaptation",
+        "held_out": held_out,
+        "time_s": round(time_s, 3),
+        "world_size": world_size,
+        "n_parameters": sum(p.numel() for p in model.parameters()),
+    }
+    save_init(out, model, "meta", summary)
+    plot_query_curve(records, out / CURVE, title=f"{config.backbone} {config.algo}: {len(train_records)} scenes, "
+                                                   f"{config.inner_steps} inner steps, meta-batch {config.meta_batch}")
+    write_json(out / SUMMARY, summary)
+    return summary
+
+
+def plot_query_curve(records: Sequence[dict[str, Any]], path: Path, *, title: str = "") -> None:
+    """Query PSNR after adaptation, and the initialisation's support PSNR, against meta-steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    steps = np.array([r["step"] for r in records], dtype=float)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
+    for key, label, color in (("query_psnr", "query PSNR after adaptation", "C0"), ("init_psnr", "initialisation (before adaptation)", "C1")):
+        ys = np.array([r[key] for r in records], dtype=float)
+        if len(ys):
+            ax.plot(steps, ys, color=color, lw=0.8, alpha=0.35)
+            ax.plot(steps, _smooth(ys), color=color, lw=1.6, label=f"{label}, smoothed")
+    ax.set_xlabel("meta-step")
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def _smooth(values, window: int = 10):
+    import numpy as np
+
+    csum = np.cumsum(np.insert(values, 0, 0.0))
+    idx = np.arange(1, len(values) + 1)
+    lo = np.maximum(0, idx - window)
+    return (csum[idx] - csum[lo]) / (idx - lo)
+
