@@ -11,8 +11,8 @@ from nerfmeta.fields.registry import build_model, config_from_dict, default_conf
 from nerfmeta.fit.loop import FitConfig, fit
 from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
 
-GRID_FAST = ["--set", "coarse_iters=15", "--set", "growth_steps=[10]", "--set", "num_voxels=27000",
-             "--set", "coarse_num_voxels=4096"]
+# coarse stage, the switch to the fine stage and one growth step all happen within the 90 iterations
+GRID_FAST = ["--set", "coarse_iters=30", "--set", "growth_steps=[20]"]
 NERF_FAST = ["--set", "depth=2", "--set", "width=32", "--set", "skips=[]", "--set", "n_samples=16",
              "--set", "pos_freqs=4", "--set", "lr=0.01"]
 

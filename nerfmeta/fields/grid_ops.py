@@ -2,10 +2,22 @@
 
 Grids are stored like DirectVoxGO's: a value per voxel corner over an axis-aligned box
 ``bounds`` (2, 3), corner ``(i, j, k)`` at ``bounds[0] + (i, j, k) * (bounds[1] - bounds[0]) / (size - 1)``.
-Two layouts: channels-first ``(C, X, Y, Z)`` for :func:`interp_cf` (``grid_sample``, fastest for
-one channel on CPU) and channels-last ``(X*Y*Z, C)`` for :func:`interp_cl` (a gather with
-``embedding_bag``, fastest for many channels on CPU since each corner's channels are contiguous).
-Points outside the box are clamped to its faces.
+Two layouts:
+
+- channels-first ``(C, X, Y, Z)``: :func:`interp_cf` (``grid_sample``), :func:`resample_cf`,
+  :func:`total_variation`; used for whole-grid work (resampling, alpha of every voxel);
+- flat channels-last ``(X*Y*Z, C)``, flattened in ``(x, y, z)`` order: :func:`corner_indices_weights`
+  + :func:`trilinear_gather`, used on the training path. A ``(1, X, Y, Z)`` grid *is* a
+  ``(X*Y*Z, 1)`` flat grid (``grid.view(-1, 1)``), so a one-channel density grid serves both.
+
+Per-point data on the training path is *component-major*: coordinates (3, N), corner indices and
+weights (8, N), so every elementwise step runs over long contiguous rows. :func:`trilinear_gather`
+is a custom autograd function: the forward is a flat gather (one channel) or one
+``embedding_bag`` (several), and the backward plain ``index_add_`` scatters of the weighted output
+gradients into the grid, one per channel. PyTorch's own backwards for this (``embedding_bag``'s
+sorts its indices, ``grid_sample``'s also computes the gradient of the sample positions) cost two
+to four times more on a CPU. The corner indices and weights are computed once per point and
+shared by every grid of the same size. Points outside the box are clamped to its faces.
 """
 
 from __future__ import annotations
@@ -14,6 +26,25 @@ import math
 
 import torch
 import torch.nn.functional as F
+
+__all__ = [
+    "corner_indices_weights",
+    "corners_from_coords",
+    "dilate",
+    "grid_coords",
+    "grid_points",
+    "interp_cf",
+    "interp_cl",
+    "nearest_from_coords",
+    "nearest_index",
+    "nearest_lookup",
+    "resample_cf",
+    "take_columns",
+    "to_unit",
+    "total_variation",
+    "trilinear_gather",
+    "voxel_layout",
+]
 
 
 def voxel_layout(bounds: torch.Tensor, num_voxels: int) -> tuple[tuple[int, int, int], float]:
@@ -33,7 +64,7 @@ def to_unit(points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
 
 
 def interp_cf(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
-    """Trilinear interpolation of a channels-first grid.
+    """Trilinear interpolation of a channels-first grid (``grid_sample``; for whole-grid work).
 
     Args:
         grid: (C, X, Y, Z).
@@ -51,31 +82,107 @@ def interp_cf(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor) ->
     return out.view(grid.shape[0], n).t()
 
 
-_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+def grid_coords(points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """Continuous corner coordinates (3, N) of (N, 3) world points: corner ``(i, j, k)`` is at ``(i, j, k)``.
+
+    Coordinates are component-major (one row per axis), the layout the functions below work in.
+    """
+    top = torch.tensor([s - 1 for s in size], dtype=points.dtype, device=points.device)
+    lo = bounds[0].to(points.dtype)
+    return ((points - lo) * (top / (bounds[1].to(points.dtype) - lo))).t()
+
+
+_OFFSETS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+
+
+def corners_from_coords(x: torch.Tensor, size: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`corner_indices_weights` from corner coordinates (3, N) (see :func:`grid_coords`)."""
+    top = torch.tensor([s - 1 for s in size], dtype=x.dtype, device=x.device)[:, None]
+    x = x.detach().clamp(torch.zeros_like(top), top)
+    i0 = torch.minimum(x.floor(), top - 1)
+    f = x - i0
+    n_corners = size[0] * size[1] * size[2]
+    stride_dtype = torch.float64 if n_corners >= 1 << 24 else x.dtype  # integer-exact below 2**24 (2**53)
+    strides = torch.tensor([size[1] * size[2], size[2], 1], dtype=stride_dtype, device=x.device)[:, None]
+    base = (i0.to(stride_dtype) * strides).sum(0).long()
+    offs = torch.tensor([(dx * size[1] + dy) * size[2] + dz for dx, dy, dz in _OFFSETS], device=x.device)
+    g = torch.stack([1 - f, f], 1)  # (3, 2, N): weights of the lower and upper corner along each axis
+    wxy = (g[0][:, None] * g[1][None]).reshape(4, -1)
+    w = (wxy[:, None] * g[2][None]).reshape(8, -1)
+    return base[None] + offs[:, None], w
 
 
 def corner_indices_weights(
     points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flat indices (N, 8) of the 8 voxel corners around each point and their trilinear weights (N, 8)."""
-    sx, sy, sz = size
-    scale = torch.tensor([sx - 1, sy - 1, sz - 1], dtype=points.dtype, device=points.device)
-    x = (to_unit(points, bounds) * scale).clamp(min=0.0)
-    x = torch.minimum(x, scale)
-    i0 = torch.minimum(x.floor(), scale - 1).long()
-    f = x - i0.to(x.dtype)
-    base = (i0[:, 0] * sy + i0[:, 1]) * sz + i0[:, 2]
-    offs = torch.tensor([(dx * sy + dy) * sz + dz for dx, dy, dz in _CORNERS], device=points.device)
-    fx, fy, fz = f.unbind(-1)
-    wx = torch.stack([1 - fx, fx], -1)
-    wy = torch.stack([1 - fy, fy], -1)
-    wz = torch.stack([1 - fz, fz], -1)
-    w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
-    return base[:, None] + offs, w
+    """The 8 voxel corners around each point and their trilinear weights, corner-major.
+
+    Args:
+        points: (N, 3) world points (clamped to the box).
+        bounds: (2, 3) the grid's box.
+        size: (X, Y, Z) corners per axis, each >= 2.
+
+    Returns:
+        indices (8, N) int64 into a flat ``(X*Y*Z, C)`` grid, corners in ``(dx, dy, dz)`` order
+        ``000, 001, 010, 011, 100, ...``; weights (8, N) in the points' dtype, non-negative and
+        summing to 1 over the corners. No gradient flows to ``points``.
+    """
+    return corners_from_coords(grid_coords(points.detach(), bounds, size), size)
+
+
+class _TrilinearGather(torch.autograd.Function):
+    """``out[n] = sum_k w[k, n] * grid[idx[k, n]]`` with ``index_add_`` backwards (grid only)."""
+
+    @staticmethod
+    def forward(ctx, grid: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(idx, w)
+        ctx.rows = grid.shape[0]
+        if grid.shape[1] == 1:  # one channel: a flat gather, corner-major, beats embedding_bag
+            values = grid.view(-1).index_select(0, idx.view(-1)).view(idx.shape)
+            return (values * w).sum(0).unsqueeze(1)
+        return F.embedding_bag(idx.t().contiguous(), grid, per_sample_weights=w.t().contiguous(), mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
+        idx, w = ctx.saved_tensors
+        if not ctx.needs_input_grad[0]:
+            return None, None, None
+        # Differentiable ops only (the zeros take no gradient), so double backward works too.
+        flat = idx.reshape(-1)
+        channels = grad_out.shape[1]
+        if channels == 1:
+            grad = grad_out.new_zeros(ctx.rows).index_add_(0, flat, (w * grad_out.view(1, -1)).reshape(-1))
+            return grad.view(ctx.rows, 1), None, None
+        # One 1-D scatter per channel: on a CPU far faster than a scatter of short rows.
+        src = w[None] * grad_out.t().contiguous()[:, None, :]  # (C, 8, N)
+        grad = grad_out.new_zeros(channels, ctx.rows)
+        for c in range(channels):
+            grad[c].index_add_(0, flat, src[c].reshape(-1))
+        return grad.t().contiguous(), None, None
+
+
+def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """``a[:, cols]`` for a component-major (K, N) tensor: row by row, which a CPU does several
+    times faster than one ``index_select`` along dimension 1 (int64 above all)."""
+    return torch.stack([row.index_select(0, cols) for row in a]) if a.shape[0] else a[:, cols]
+
+
+def trilinear_gather(grid: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Weighted sum of grid rows: trilinear interpolation from :func:`corner_indices_weights`.
+
+    Args:
+        grid: (V, C) flat channels-last grid (differentiable).
+        idx: (8, N) int64 row indices, corner-major.
+        w: (8, N) weights, same dtype as ``grid`` (no gradient flows to them).
+
+    Returns:
+        (N, C) ``sum_k w[k, :, None] * grid[idx[k]]``.
+    """
+    return _TrilinearGather.apply(grid, idx, w.detach())
 
 
 def interp_cl(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
-    """Trilinear interpolation of a channels-last grid.
+    """Trilinear interpolation of a flat channels-last grid.
 
     Args:
         grid: (X*Y*Z, C) values, flattened in (x, y, z) order.
@@ -85,16 +192,27 @@ def interp_cl(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor, si
         (N, C).
     """
     idx, w = corner_indices_weights(points, bounds, size)
-    return F.embedding_bag(idx, grid, per_sample_weights=w, mode="sum")
+    return trilinear_gather(grid, idx, w.to(grid.dtype))
+
+
+def nearest_from_coords(x: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """(N,) flat index of the corner nearest each corner coordinate (3, N) (clamped to the grid)."""
+    top = torch.tensor([s - 1 for s in size], dtype=x.dtype, device=x.device)[:, None]
+    ijk = x.clamp(torch.zeros_like(top), top).round_().long()
+    return (ijk[0] * size[1] + ijk[1]) * size[2] + ijk[2]
+
+
+def nearest_index(points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """(N,) flat index of the voxel corner nearest each (N, 3) point (points clamped to the box)."""
+    return nearest_from_coords(grid_coords(points, bounds, size), size)
 
 
 def nearest_lookup(mask: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
     """Value of a (X, Y, Z) grid at the voxel corner nearest each (N, 3) point; False/0 outside the box."""
-    size = torch.tensor(mask.shape, device=points.device)
     u = to_unit(points, bounds)
     inside = ((u >= 0) & (u <= 1)).all(-1)
-    idx = torch.round(u.clamp(0, 1) * (size - 1).to(u.dtype)).long()
-    return mask[idx[:, 0], idx[:, 1], idx[:, 2]] & inside
+    idx = nearest_index(points, bounds, tuple(mask.shape))  # type: ignore[arg-type]
+    return mask.reshape(-1)[idx] & inside
 
 
 def grid_points(bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
@@ -114,3 +232,11 @@ def total_variation(grid: torch.Tensor) -> torch.Tensor:
     dy = (grid[:, :, 1:] - grid[:, :, :-1]).pow(2).mean()
     dz = (grid[:, :, :, 1:] - grid[:, :, :, :-1]).pow(2).mean()
     return (dx + dy + dz) / 3.0
+
+
+def dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Grow a (X, Y, Z) boolean mask by ``radius`` voxels along each axis (a cube, by max pooling)."""
+    if radius <= 0:
+        return mask.clone()
+    k = 2 * radius + 1
+    return F.max_pool3d(mask[None, None].float(), k, stride=1, padding=radius)[0, 0] > 0

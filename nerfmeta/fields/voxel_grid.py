@@ -2,90 +2,126 @@
 
 Two stages, as in DirectVoxGO (Sun et al., CVPR 2022):
 
-1. **Coarse**: a density grid and a direct RGB grid over the scene box, trained for
-   ``coarse_iters`` steps. It finds the occupied region: the fine box is the bounding box of
-   voxels whose alpha exceeds ``bbox_thres``, and the fine stage's occupancy (mask) cache starts
-   as the dilated set of voxels whose coarse alpha exceeds ``mask_cache_thres``.
-2. **Fine**: a higher-resolution density grid and a feature grid in the tightened box, the
-   features decoded with the view direction by a shallow MLP. Samples whose occupancy bit is
-   off are skipped (never evaluated); colour is only decoded where a sample's compositing
-   weight exceeds ``fast_color_thres``. The occupancy cache is pruned from the fine density
-   every ``occupancy_every`` steps, and the grids grow progressively (voxel count doubling at
-   ``growth_steps``, starting from ``num_voxels / 2**len(growth_steps)``).
+1. **Coarse** (``coarse_iters`` steps): a density grid and a direct RGB grid (``sigmoid`` of
+   three logits per voxel) over the scene box. It finds the occupied region: the fine box is the
+   bounding box of voxels whose coarse alpha exceeds ``bbox_thres`` (scaled by
+   ``world_bound_scale``), and the fine stage's occupancy (mask) cache starts as the set of fine
+   voxels whose coarse alpha exceeds ``mask_cache_thres``, dilated by two voxels.
+2. **Fine**: a density grid and a feature grid in the tightened box. Colour is
+   ``sigmoid(diffuse + mlp(features, view))`` (DirectVoxGO's non-direct colour head): the feature
+   grid holds 3 diffuse logits plus ``feature_dim`` channels that a shallow MLP decodes with the
+   encoded view direction; the MLP's last layer starts at zero. The fine stage is initialised
+   from the coarse one (density converted through world units, diffuse logits copied), so
+   switching stages keeps what the coarse stage learned. The grids grow progressively: they start
+   with ``num_voxels / 2**len(growth_steps)`` voxels and double their count at each of
+   ``growth_steps`` (fine-stage steps), resampled trilinearly. The occupancy cache is pruned
+   every ``occupancy_every`` fine steps (voxels whose alpha fell below ``mask_cache_thres``,
+   dilated by one voxel, stay).
 
 Density is *post-activated*: the raw grid is interpolated first and only then passed through
 ``softplus(raw + shift)``, which lets a trilinear grid represent sharp surfaces inside a voxel.
-``shift`` is chosen so that raw 0 gives alpha ``alpha_init`` over one step (the shifted
-softplus of DirectVoxGO). Densities are in units of 1/``unit`` where ``unit`` is the voxel side
-of the fully grown grid of the current stage (``tau = sigma * delta / unit``), so growing the grid
-does not change what a raw value means.
+``shift`` is chosen so that raw 0 gives alpha ``alpha_init`` (``coarse_alpha_init``) over one
+step of ``stepsize`` voxels (the shifted softplus of DirectVoxGO). Densities are in units of
+1/``unit`` where ``unit`` is the voxel side of the fully grown grid of the current stage
+(``tau = sigma * delta / unit``), so growing the grid does not change what a raw value means.
 
-Colour in the fine stage is ``sigmoid(diffuse + mlp(features, view))`` (DirectVoxGO's
-non-direct colour head): the feature grid holds 3 diffuse logits plus ``feature_dim`` channels for
-the MLP, whose last layer starts at zero. The fine stage is initialised from the coarse one
-(density converted through world units, diffuse logits copied), so switching stages does not
-throw away what the coarse stage learned.
+Rendering marches every ``stepsize`` voxels through the box in a *packed* layout (one flat list
+of samples, sorted by ray, no padding), so its cost follows the samples that exist rather than
+``rays x longest ray``:
+
+- empty-space skipping: samples whose nearest occupancy-cache voxel is off are dropped before
+  anything is evaluated (``empty_space_skipping``; the count after this is
+  ``RenderOutput.samples_evaluated``);
+- early ray termination: in training, the densities of the kept samples are first computed
+  without autograd, and samples behind the point where a ray's transmittance falls below
+  ``early_stop_eps`` are dropped before the differentiable pass (their weight is below that);
+- colour is only decoded where a sample's compositing weight exceeds ``fast_color_thres``.
+
+Interpolation on the training path uses :func:`~nerfmeta.fields.grid_ops.trilinear_gather`
+(one shared set of corner indices per sample, an ``index_add_`` backward).
+
+Sizes: ``num_voxels = 0`` and ``coarse_num_voxels = 0`` mean "auto"; :meth:`VoxelGridConfig.for_scene`
+resolves them from the image resolution (see there). The defaults are tuned for NeRF-synthetic
+scenes at 100x100 on a 2-core CPU (lego: about 28 dB in 60 s; see BENCHMARKS.md).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nerfmeta.data.scene import RayBatch
+from nerfmeta.data.scene import RayBatch, Scene
+from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, ParamGroup, RadianceModel, RenderOutput, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.grid_ops import (
+    corners_from_coords,
+    dilate,
     grid_points,
     interp_cf,
-    interp_cl,
-    nearest_lookup,
+    nearest_from_coords,
     resample_cf,
+    take_columns,
     total_variation,
+    trilinear_gather,
     voxel_layout,
 )
 from nerfmeta.render.rays import clip_to_aabb
-from nerfmeta.render.sampling import fixed_step_samples
-from nerfmeta.render.volume import render_weights, softplus_shift_for_alpha
+from nerfmeta.render.volume import softplus_shift_for_alpha
+
+AUTO_VOXELS_PER_PIXEL = 0.88
+"""Auto fine grid: voxels per axis per pixel of the larger image side (88^3 for 100x100 views)."""
+AUTO_MAX_SIDE = 160
+"""Auto fine grid: at most 160^3 voxels (DirectVoxGO's NeRF-synthetic setting, for 800x800)."""
+AUTO_MIN_SIDE = 16
+"""Auto fine grid: at least 16^3 voxels."""
+AUTO_COARSE_RATIO = 0.5
+"""Auto coarse grid: voxels per axis as a fraction of the fine grid's (44^3 for 88^3)."""
 
 
 @dataclass(frozen=True)
 class VoxelGridConfig:
     """Voxel-grid backbone settings (defaults tuned for ~100x100 views on a 2-core CPU)."""
 
-    coarse_iters: int = 300
+    coarse_iters: int = 100
     """Steps of the coarse stage before the fine stage starts (0 skips the coarse stage: the fine stage uses the scene box and no mask)."""
-    coarse_num_voxels: int = 48**3
-    """Voxels in the coarse grids."""
+    coarse_num_voxels: int = 0
+    """Voxels in the coarse grids (0: auto, see ``for_scene``)."""
     coarse_alpha_init: float = 1e-4
-    """Alpha of one coarse step at raw density 0."""
-    num_voxels: int = 88**3
-    """Voxels in the fine grids once fully grown."""
+    """Alpha of one coarse step at raw density 0 (keep it below ``bbox_thres`` so unseen voxels do not count as occupied)."""
+    num_voxels: int = 0
+    """Voxels in the fine grids once fully grown (0: auto from the image resolution, see ``for_scene``)."""
     alpha_init: float = 1e-2
     """Alpha of one fine step at raw density 0."""
     feature_dim: int = 6
     """Channels of the fine feature grid fed to the MLP (3 diffuse-colour channels come on top)."""
+    feature_scale: float = 1.0
+    """Resolution of the fine feature grid relative to the density grid, per axis (1: the same, as DirectVoxGO)."""
     mlp_width: int = 64
     """Width of the colour MLP."""
     mlp_depth: int = 3
-    """Linear layers in the colour MLP."""
+    """Linear layers in the colour MLP (>= 1)."""
     view_dependent: bool = True
     """Decode view-dependent colour with the MLP; False keeps the diffuse colour alone (no MLP)."""
     dir_freqs: int = 4
     """Frequencies of the view-direction encoding."""
     stepsize: float = 0.5
-    """Distance between samples along a ray, in voxels."""
-    bbox_thres: float = 1e-3
-    """Coarse alpha above which a voxel counts as occupied when tightening the fine box."""
+    """Distance between samples along a ray, in voxels of the current grid."""
+    bbox_thres: float = 0.1
+    """Coarse alpha above which a voxel counts as occupied when tightening the fine box (DirectVoxGO uses 1e-3 after a 5000-step coarse stage; a short one leaves faint floaters that such a low value would count)."""
     mask_cache_thres: float = 1e-3
     """Alpha above which a voxel stays in the occupancy cache."""
+    coarse_fast_color_thres: float = 1e-5
+    """Coarse samples with a smaller compositing weight are not colour-decoded (DirectVoxGO: a tenth of the initial alpha)."""
     fast_color_thres: float = 1e-4
-    """Samples with a smaller compositing weight are not colour-decoded."""
+    """Fine samples with a smaller compositing weight are not colour-decoded."""
+    early_stop_eps: float = 1e-4
+    """Early ray termination: samples behind the point where a ray's transmittance falls below this are not evaluated (0: off)."""
     empty_space_skipping: bool = True
     """Skip samples in voxels the occupancy cache marks empty (switch off to compare)."""
     occupancy_every: int = 100
@@ -94,8 +130,10 @@ class VoxelGridConfig:
     """Fine-stage steps at which the grids double their voxel count."""
     world_bound_scale: float = 1.05
     """Scale of the tightened fine box about its centre."""
+    coarse_lr_density: float = 0.3
+    """Learning rate of the coarse density grid."""
     lr_density: float = 0.1
-    """Learning rate of the density grids."""
+    """Learning rate of the fine density grid."""
     lr_features: float = 0.1
     """Learning rate of the colour/feature grids."""
     lr_mlp: float = 1e-3
@@ -103,22 +141,146 @@ class VoxelGridConfig:
     tv_weight: float = 0.0
     """Weight of a total-variation loss on the fine density grid (0: off)."""
 
+    def __post_init__(self) -> None:
+        # JSON has no tuples: accept a list for ``growth_steps`` so a saved config loads back equal.
+        object.__setattr__(self, "growth_steps", tuple(int(s) for s in self.growth_steps))
+        checks = (
+            ("coarse_iters", self.coarse_iters >= 0, "use 0 (no coarse stage) or more"),
+            ("coarse_num_voxels", self.coarse_num_voxels == 0 or self.coarse_num_voxels >= 8, "use 0 (auto) or at least 8"),
+            ("num_voxels", self.num_voxels == 0 or self.num_voxels >= 8, "use 0 (auto) or at least 8"),
+            ("coarse_alpha_init", 0.0 < self.coarse_alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-4"),
+            ("alpha_init", 0.0 < self.alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-2"),
+            ("feature_dim", self.feature_dim >= 0, "use 0 or more"),
+            ("feature_scale", 0.0 < self.feature_scale <= 1.0, "use a value in (0, 1]"),
+            ("mlp_width", self.mlp_width >= 1, "use 1 or more"),
+            ("mlp_depth", self.mlp_depth >= 1, "use 1 or more"),
+            ("dir_freqs", self.dir_freqs >= 0, "use 0 or more"),
+            ("stepsize", self.stepsize > 0.0, "use a positive step, e.g. 0.5 voxels"),
+            ("early_stop_eps", 0.0 <= self.early_stop_eps < 1.0, "use 0 (off) or a small value such as 1e-4"),
+            ("occupancy_every", self.occupancy_every >= 0, "use 0 (never) or more"),
+            ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
+             "use increasing positive fine-stage steps, e.g. [100, 200]"),
+            ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
+        )
+        for name, ok, hint in checks:
+            if not ok:
+                raise ConfigError(f"grid config {name}={getattr(self, name)!r} is not allowed: {hint}")
+
+    def for_scene(self, scene: Scene) -> "VoxelGridConfig":
+        """This config with the "auto" (0) grid sizes resolved for ``scene``.
+
+        Rule: the fine grid gets ``n^3`` voxels with ``n = 0.88 * max(height, width)`` clamped to
+        16..160, about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
+        views, 28^3 for 32x32, and DirectVoxGO's 160^3 from 182x182 up, e.g. 800x800). The
+        coarse grid gets ``(n / 2)^3`` voxels (at least 16^3). Sizes given explicitly are kept.
+        """
+        side = round(AUTO_VOXELS_PER_PIXEL * max(scene.height, scene.width))
+        side = min(AUTO_MAX_SIDE, max(AUTO_MIN_SIDE, side))
+        num = self.num_voxels or side**3
+        coarse = self.coarse_num_voxels or max(AUTO_MIN_SIDE, round(AUTO_COARSE_RATIO * side)) ** 3
+        return replace(self, num_voxels=num, coarse_num_voxels=coarse)
+
+
+# ----- packed sampling and compositing (pure functions) -------------------------------------------
+
+
+def march_packed(
+    near: torch.Tensor, far: torch.Tensor, step: float, jitter: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Samples every ``step`` from ``near`` to ``far``, packed (the packed form of ``fixed_step_samples``).
+
+    Args:
+        near, far: (n_rays,) with ``far >= near`` (equal: no samples).
+        step: distance between samples.
+        jitter: (n_rays,) in [0, 1): where each sample sits in its bin (0.5: the bin middle).
+
+    Returns:
+        ray_idx (M,) int64 non-decreasing, the ray of each sample; t (M,) distances; delta (M,)
+        bin lengths (``step``, the last bin of a ray clipped at ``far``, so a ray's deltas sum
+        to ``far - near``).
+    """
+    counts = torch.ceil((far - near) / step).clamp_(min=0)
+    counts = (counts - ((counts > 0) & (near + step * (counts - 1) >= far)).to(counts.dtype)).long()  # rounding
+    total = int(counts.sum())
+    n = near.shape[0]
+    ray_idx = torch.repeat_interleave(torch.arange(n, device=near.device), counts, output_size=total)
+    first = torch.cumsum(counts, 0) - counts
+    k = (torch.arange(total, device=near.device) - first.index_select(0, ray_idx)).to(near.dtype)
+    t = torch.add((near + step * jitter).index_select(0, ray_idx), k, alpha=step)
+    delta = torch.full_like(t, step)
+    # The last bin of each ray ends at ``far``.
+    rays = torch.nonzero(counts)[:, 0]
+    last = first.index_select(0, rays) + counts.index_select(0, rays) - 1
+    last_start = near.index_select(0, rays) + step * (counts.index_select(0, rays) - 1).to(near.dtype)
+    last_delta = (far.index_select(0, rays) - last_start).clamp_(min=0.0)
+    delta.index_copy_(0, last, last_delta)
+    t.index_copy_(0, last, last_start + last_delta * jitter.index_select(0, rays))
+    return ray_idx, t, delta
+
+
+def packed_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Transmittance in front of each packed sample, and after each ray's last one.
+
+    ``T_i = exp(-sum of the ray's earlier tau)``, the exclusive per-ray sum taken from one running
+    sum in float64 (exact enough for any batch).
+
+    Args:
+        tau: (M,) non-negative optical depths, samples of a ray contiguous and front to back.
+        ray_idx: (M,) non-decreasing ray of each sample.
+        n_rays: number of rays.
+
+    Returns:
+        before (M,) in [0, 1]; t_final (n_rays,) in [0, 1] (1 for rays without samples).
+    """
+    tau64 = tau.double()
+    ray_sum = tau64.new_zeros(n_rays).index_add(0, ray_idx, tau64)
+    before_ray = torch.cumsum(ray_sum, 0) - ray_sum
+    # index_select, not tau[idx]: its backward is an index_add_, not an accumulating index_put_.
+    before = (torch.cumsum(tau64, 0) - tau64 - before_ray.index_select(0, ray_idx)).clamp(min=0.0)
+    return torch.exp(-before).to(tau.dtype), torch.exp(-ray_sum).to(tau.dtype)
+
+
+def packed_weights(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Compositing weights ``T_i * alpha_i`` of packed samples (the packed form of ``render_weights``).
+
+    Args:
+        tau: (M,) non-negative optical depths, samples of a ray contiguous and front to back.
+        ray_idx: (M,) non-decreasing ray of each sample.
+        n_rays: number of rays.
+
+    Returns:
+        weights (M,) in [0, 1]; t_final (n_rays,) transmittance after each ray's last sample
+        (1 for rays without samples), so that per ray ``sum(weights) + t_final == 1``.
+    """
+    before, t_final = packed_transmittance(tau, ray_idx, n_rays)
+    return before * -torch.expm1(-tau), t_final
+
+
+# ----- model --------------------------------------------------------------------------------------
+
 
 class ColorMLP(nn.Module):
-    """Shallow MLP mapping grid features (+ encoded view direction) to RGB logits; last layer zero."""
+    """Shallow MLP mapping grid features and the encoded view direction to RGB logits; last layer zero.
 
-    def __init__(self, in_dim: int, width: int, depth: int):
+    The first layer's input is ``[features, view]``; its view part is applied once per *ray* and
+    gathered per sample (the same sum, fewer products).
+    """
+
+    def __init__(self, feature_dim: int, view_dim: int, width: int, depth: int):
         super().__init__()
-        dims = [in_dim] + [width] * (depth - 1) + [3]
+        self.feature_dim = feature_dim
+        dims = [feature_dim + view_dim] + [width] * (depth - 1) + [3]
         self.linears = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         nn.init.zeros_(self.linears[-1].weight)
         nn.init.zeros_(self.linears[-1].bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        for i, lin in enumerate(self.linears):
-            x = lin(x)
-            if i < len(self.linears) - 1:
-                x = F.relu(x)
+    def forward(self, features: torch.Tensor, view: torch.Tensor, ray_idx: torch.Tensor) -> torch.Tensor:
+        """RGB logits (N, 3) from features (N, feature_dim), per-ray encoded views (n_rays, view_dim), ray_idx (N,)."""
+        first = self.linears[0]
+        w_feat, w_view = first.weight.split([self.feature_dim, first.weight.shape[1] - self.feature_dim], 1)
+        x = F.linear(features, w_feat) + F.linear(view, w_view, first.bias).index_select(0, ray_idx)
+        for lin in self.linears[1:]:
+            x = lin(F.relu(x))
         return x
 
 
@@ -135,54 +297,72 @@ class VoxelGrid(RadianceModel):
     ``density``, ``features``, ``mlp.0`` ... ``mlp.{depth-1}`` (no MLP layers when
     ``view_dependent`` is False). ``freeze_first(1)`` freezes the density grid (geometry),
     ``freeze_first(2)`` also the feature grid, leaving only the decoder to adapt.
+
+    Parameters: ``density_coarse`` / ``density`` are (1, X, Y, Z); ``color_coarse`` (X*Y*Z, 3)
+    and ``features`` (X*Y*Z, C) are flat channels-last. Buffers: ``scene_bounds`` (2, 3),
+    ``bounds`` (2, 3) the current stage's box, ``mask`` the occupancy cache (a (1, 1, 1) True
+    when there is none).
     """
 
     backbone = "grid"
 
     def __init__(self, config: VoxelGridConfig, bounds: torch.Tensor):
         super().__init__()
+        if config.num_voxels == 0 or (config.coarse_iters > 0 and config.coarse_num_voxels == 0):
+            raise ConfigError("grid config: num_voxels/coarse_num_voxels 0 means auto; resolve them with "
+                              "VoxelGridConfig.for_scene(scene) or set them explicitly")
         self.config = config
+        device = bounds.device
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
-        self.register_buffer("mask", torch.ones(1, 1, 1, dtype=torch.bool, device=bounds.device))
+        self.register_buffer("mask", torch.ones(1, 1, 1, dtype=torch.bool, device=device))
         self.level = 0
         self.fine_step0 = config.coarse_iters
         # The colour MLP is created now (with the caller's RNG state, so a seeded build is
         # reproducible) but only registered when the fine stage starts.
-        in_dim = config.feature_dim + encoding_dim(3, config.dir_freqs)
-        object.__setattr__(self, "_pending_mlp", ColorMLP(in_dim, config.mlp_width, config.mlp_depth))
+        mlp = ColorMLP(config.feature_dim, encoding_dim(3, config.dir_freqs), config.mlp_width, config.mlp_depth)
+        object.__setattr__(self, "_pending_mlp", mlp)
         if config.coarse_iters > 0:
-            self.stage = "coarse"
-            self.size, self.voxel = voxel_layout(self.bounds, config.coarse_num_voxels)
-            self.unit = self.voxel
-            self.shift = softplus_shift_for_alpha(config.coarse_alpha_init, config.stepsize)
-            self.density_coarse = nn.Parameter(torch.zeros(1, *self.size, device=bounds.device))
-            self.color_coarse = nn.Parameter(torch.zeros(3, *self.size, device=bounds.device))
+            self._init_coarse(self.scene_bounds.clone(), voxel_layout(self.scene_bounds, config.coarse_num_voxels)[0])
         else:
             self._init_fine(self.scene_bounds.clone(), None, None)
 
     # ----- structure -------------------------------------------------------------------------
+    def _init_coarse(self, bounds: torch.Tensor, size: tuple[int, int, int]) -> None:
+        cfg = self.config
+        self.stage = "coarse"
+        self.bounds = bounds
+        self.size, self.voxel = tuple(size), voxel_layout(bounds, cfg.coarse_num_voxels)[1]
+        self.feature_size = self.size
+        self.unit = self.voxel
+        self.shift = softplus_shift_for_alpha(cfg.coarse_alpha_init, cfg.stepsize)
+        n = math.prod(self.size)
+        self.density_coarse = nn.Parameter(torch.zeros(1, *self.size, device=bounds.device))
+        self.color_coarse = nn.Parameter(torch.zeros(n, 3, device=bounds.device))
+
     def _fine_num_voxels(self) -> int:
         return max(8, int(self.config.num_voxels / 2 ** (len(self.config.growth_steps) - self.level)))
 
     def _init_fine(self, bounds: torch.Tensor, mask: torch.Tensor | None, coarse: tuple | None) -> None:
-        """Switch to the fine stage in ``bounds``; ``coarse`` = (density, color, bounds, unit, shift) to start from."""
+        """Switch to the fine stage in ``bounds``; ``coarse`` = (density, color, bounds, size, unit, shift) to start from."""
         cfg = self.config
         device = bounds.device
         self.stage = "fine"
         self.bounds = bounds
         self.mask = mask if mask is not None else torch.ones(1, 1, 1, dtype=torch.bool, device=device)
         _, self.unit = voxel_layout(bounds, cfg.num_voxels)
-        self.size, self.voxel = voxel_layout(bounds, self._fine_num_voxels())
+        self._set_fine_sizes()
         self.shift = softplus_shift_for_alpha(cfg.alpha_init, cfg.stepsize)
         density = torch.zeros(1, *self.size, device=device)
-        feats = torch.zeros(self._channels(), *self.size, device=device)
+        feats = torch.zeros(self._channels(), *self.feature_size, device=device)
         if coarse is not None:
-            c_density, c_color, c_bounds, c_unit, c_shift = coarse
+            c_density, c_color, c_bounds, c_size, c_unit, c_shift = coarse
             pts = grid_points(bounds, self.size).reshape(-1, 3)
             sigma_world = F.softplus(interp_cf(c_density, pts, c_bounds)[:, 0] + c_shift) / c_unit
             density = (softplus_inverse(sigma_world * self.unit) - self.shift).view(1, *self.size)
-            feats[:3] = interp_cf(c_color, pts, c_bounds).t().reshape(3, *self.size)
+            c_color_cf = c_color.t().reshape(3, *c_size)
+            pts = grid_points(bounds, self.feature_size).reshape(-1, 3)
+            feats[:3] = interp_cf(c_color_cf, pts, c_bounds).t().reshape(3, *self.feature_size)
         for name in ("density_coarse", "color_coarse"):
             if name in self._parameters:
                 delattr(self, name)
@@ -190,6 +370,15 @@ class VoxelGrid(RadianceModel):
         self.features = nn.Parameter(feats.reshape(self._channels(), -1).t().contiguous())
         if cfg.view_dependent and "mlp" not in self._modules:
             self.mlp = self._pending_mlp.to(device)
+
+    def _set_fine_sizes(self) -> None:
+        """Density and feature grid sizes of the current growth level."""
+        num = self._fine_num_voxels()
+        self.size, self.voxel = voxel_layout(self.bounds, num)
+        if self.config.feature_scale == 1.0:
+            self.feature_size = self.size
+        else:
+            self.feature_size = voxel_layout(self.bounds, max(8, int(num * self.config.feature_scale**3)))[0]
 
     def _channels(self) -> int:
         """Feature-grid channels: 3 diffuse logits, plus the MLP's inputs when view-dependent."""
@@ -202,19 +391,23 @@ class VoxelGrid(RadianceModel):
             "fine_step0": self.fine_step0,
             "bounds": self.bounds.tolist(),
             "size": list(self.size),
+            "feature_size": list(self.feature_size),
             "mask_shape": list(self.mask.shape),
         }
 
     def load_structure(self, structure: dict[str, Any]) -> None:
+        device = self.scene_bounds.device
+        bounds = torch.tensor(structure["bounds"], dtype=torch.float32, device=device)
+        self.level = int(structure["level"])
+        self.fine_step0 = int(structure["fine_step0"])
         if structure["stage"] == "fine":
-            device = self.scene_bounds.device
-            bounds = torch.tensor(structure["bounds"], dtype=torch.float32, device=device)
             mask = torch.zeros(structure["mask_shape"], dtype=torch.bool, device=device)
-            self.level = int(structure["level"])
-            self.fine_step0 = int(structure["fine_step0"])
             self._init_fine(bounds, mask, None)
-        if list(self.size) != list(structure["size"]):
-            raise ValueError(f"grid size {self.size} does not match the checkpoint's {structure['size']}")
+        else:
+            self._init_coarse(bounds, tuple(structure["size"]))
+        expected = (list(structure["size"]), list(structure.get("feature_size", structure["size"])))
+        if (list(self.size), list(self.feature_size)) != expected:
+            raise ValueError(f"grid sizes {self.size}, {self.feature_size} do not match the checkpoint's {expected}")
 
     # ----- interface ---------------------------------------------------------------------------
     def layers(self) -> list[Layer]:
@@ -229,7 +422,7 @@ class VoxelGrid(RadianceModel):
         cfg = self.config
         if self.stage == "coarse":
             return [
-                ParamGroup("density", ("density_coarse",), cfg.lr_density),
+                ParamGroup("density", ("density_coarse",), cfg.coarse_lr_density),
                 ParamGroup("features", ("color_coarse",), cfg.lr_features),
             ]
         groups = [
@@ -250,7 +443,7 @@ class VoxelGrid(RadianceModel):
         cfg = self.config
         if self.stage == "coarse" and step >= cfg.coarse_iters:
             bounds, mask = self._fine_box_and_mask()
-            coarse = (self.density_coarse.data, self.color_coarse.data, self.bounds.clone(), self.unit, self.shift)
+            coarse = (self.density_coarse.data, self.color_coarse.data, self.bounds.clone(), self.size, self.unit, self.shift)
             self.fine_step0 = step
             self._init_fine(bounds, mask, coarse)
             lo, hi = bounds.tolist()
@@ -271,19 +464,19 @@ class VoxelGrid(RadianceModel):
         return self.density_coarse if self.stage == "coarse" else self.density
 
     @torch.no_grad()
-    def _alpha_on(self, points: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
-        """Alpha of one step (``stepsize`` units) at (N, 3) points, from the current density grid."""
+    def alpha_per_step(self, points: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
+        """Alpha over one step (``stepsize`` units) at (N, 3) world points, from the current density grid."""
         out = []
         for p in points.split(chunk):
             raw = interp_cf(self._density_grid(), p, self.bounds)[:, 0]
             out.append(-torch.expm1(-F.softplus(raw + self.shift) * self.config.stepsize))
-        return torch.cat(out)
+        return torch.cat(out) if out else points.new_zeros(0)
 
     @torch.no_grad()
     def _fine_box_and_mask(self) -> tuple[torch.Tensor, torch.Tensor | None]:
         cfg = self.config
         pts = grid_points(self.bounds, self.size)
-        alpha = self._alpha_on(pts.reshape(-1, 3)).view(self.size)
+        alpha = self.alpha_per_step(pts.reshape(-1, 3)).view(self.size)
         occupied = alpha > cfg.bbox_thres
         if not bool(occupied.any()):
             bounds = self.bounds.clone()
@@ -295,16 +488,18 @@ class VoxelGrid(RadianceModel):
         if not cfg.empty_space_skipping:
             return bounds, None
         full_size, _ = voxel_layout(bounds, cfg.num_voxels)
-        alpha = self._alpha_on(grid_points(bounds, full_size).reshape(-1, 3)).view(full_size)
-        return bounds, _dilate(alpha > cfg.mask_cache_thres, radius=2)
+        alpha = self.alpha_per_step(grid_points(bounds, full_size).reshape(-1, 3)).view(full_size)
+        mask = dilate(alpha > cfg.mask_cache_thres, radius=2)
+        # A coarse stage too short to find anything must not leave the fine stage blind.
+        return bounds, mask if bool(mask.any()) else None
 
     @torch.no_grad()
     def _grow(self) -> None:
         self.level += 1
-        old = self.size
-        self.size, self.voxel = voxel_layout(self.bounds, self._fine_num_voxels())
+        old = self.feature_size
+        self._set_fine_sizes()
         channels = self.features.shape[1]
-        feats = resample_cf(self.features.data.t().reshape(channels, *old), self.size)
+        feats = resample_cf(self.features.data.t().reshape(channels, *old), self.feature_size)
         self.density = nn.Parameter(resample_cf(self.density.data, self.size))
         self.features = nn.Parameter(feats.reshape(channels, -1).t().contiguous())
 
@@ -313,10 +508,55 @@ class VoxelGrid(RadianceModel):
         if self.mask.numel() == 1:
             return
         size = tuple(self.mask.shape)
-        alpha = self._alpha_on(grid_points(self.bounds, size).reshape(-1, 3)).view(size)  # type: ignore[arg-type]
-        self.mask &= _dilate(alpha > self.config.mask_cache_thres, radius=1)
+        alpha = self.alpha_per_step(grid_points(self.bounds, size).reshape(-1, 3)).view(size)  # type: ignore[arg-type]
+        pruned = self.mask & dilate(alpha > self.config.mask_cache_thres, radius=1)
+        if bool(pruned.any()):  # an all-empty cache could never learn anything back
+            self.mask = pruned
 
     # ----- rendering ---------------------------------------------------------------------------
+    @torch.no_grad()
+    def _live_counts(
+        self, density: torch.Tensor, x: torch.Tensor, per_unit: torch.Tensor, first: torch.Tensor, counts: torch.Tensor,
+        chunk: int = 16,
+    ) -> tuple[torch.Tensor, int]:
+        """Early ray termination: how many leading samples of each ray lie in front of ``early_stop_eps`` transmittance.
+
+        Densities are evaluated (without autograd) front to back, ``chunk`` samples of every
+        still-visible ray at a time, so the samples behind a ray's termination point are mostly
+        never evaluated. Transmittance only falls along a ray, so its live samples are a prefix.
+
+        Args:
+            density: (V, 1) flat density grid; x (3, M) corner coordinates and per_unit (M,)
+            sample lengths over ``unit`` of packed samples; first (n_rays,) the index of each
+            ray's first sample and counts (n_rays,) its number of samples.
+
+        Returns:
+            live counts (n_rays,) int64, and how many samples were evaluated.
+        """
+        eps = self.config.early_stop_eps
+        n_rays = counts.shape[0]
+        steps = torch.arange(chunk, device=counts.device)
+        trans = per_unit.new_ones(n_rays)  # transmittance in front of the current chunk
+        live = torch.zeros_like(counts)
+        alive = torch.nonzero(counts)[:, 0]
+        evaluated, start = 0, 0
+        while alive.numel():
+            rank = start + steps
+            valid = (rank[None] < counts.index_select(0, alive)[:, None]).view(-1)
+            pick = torch.nonzero(valid)[:, 0]
+            part = (first.index_select(0, alive)[:, None] + rank[None]).view(-1).index_select(0, pick)
+            rays = alive.index_select(0, torch.div(pick, chunk, rounding_mode="floor"))
+            evaluated += int(part.numel())
+            idx, w = corners_from_coords(take_columns(x, part), self.size)
+            tau = F.softplus(trilinear_gather(density, idx, w)[:, 0] + self.shift) * per_unit.index_select(0, part)
+            before, after = packed_transmittance(tau, rays, n_rays)
+            live.index_add_(0, rays, (before * trans.index_select(0, rays) > eps).long())
+            trans = trans * after
+            start += chunk
+            still = (trans.index_select(0, alive) > eps) & (counts.index_select(0, alive) > start)
+            alive = alive.index_select(0, torch.nonzero(still)[:, 0])
+        return live, evaluated
+
     def forward(
         self,
         rays: RayBatch,
@@ -327,49 +567,58 @@ class VoxelGrid(RadianceModel):
     ) -> RenderOutput:
         cfg = self.config
         n = len(rays)
+        dtype, device = rays.origins.dtype, rays.origins.device
+        fine = self.stage == "fine"
         near, far, _ = clip_to_aabb(rays.origins, rays.directions, rays.near, rays.far, self.bounds)
-        step = cfg.stepsize * self.voxel
-        max_samples = max(1, int(math.ceil(float((far - near).max()) / step))) if n else 1
-        t, delta, valid = fixed_step_samples(near, far, step, max_samples, generator=generator, perturb=train)
-        if self.stage == "coarse":
-            return self._render_coarse(rays, t, delta, far, background)
-        ray_idx, sample_idx = torch.nonzero(valid, as_tuple=True)
-        pts = torch.addcmul(rays.origins[ray_idx], t[ray_idx, sample_idx, None], rays.directions[ray_idx])
-        if cfg.empty_space_skipping and self.mask.numel() > 1:
-            keep = nearest_lookup(self.mask, pts, self.bounds)
-            ray_idx, sample_idx, pts = ray_idx[keep], sample_idx[keep], pts[keep]
-        raw = interp_cf(self.density, pts, self.bounds)[:, 0]
-        sigma = F.softplus(raw + self.shift)
-        tau = torch.zeros_like(t).index_put((ray_idx, sample_idx), sigma * (delta[ray_idx, sample_idx] / self.unit))
-        weights, t_final = render_weights(tau)
-        w = weights[ray_idx, sample_idx]
-        sel = w > cfg.fast_color_thres
-        ray_c, w_c, pts_c = ray_idx[sel], w[sel], pts[sel]
-        feats = interp_cl(self.features, pts_c, self.bounds, self.size)
-        logits = feats[:, :3]
-        if cfg.view_dependent:
-            view = positional_encoding(rays.directions[ray_c], cfg.dir_freqs)
-            logits = logits + self.mlp(torch.cat([feats[:, 3:], view], -1))
-        rgb = torch.zeros(n, 3, dtype=logits.dtype, device=logits.device)
-        rgb = rgb.index_add(0, ray_c, w_c[:, None] * torch.sigmoid(logits)) + t_final[:, None] * background
-        depth = (weights * t).sum(-1) + t_final * far
-        return RenderOutput(rgb=rgb, acc=1.0 - t_final, depth=depth, samples_evaluated=int(pts.shape[0]))
-
-    def _render_coarse(
-        self, rays: RayBatch, t: torch.Tensor, delta: torch.Tensor, far: torch.Tensor, background: torch.Tensor
-    ) -> RenderOutput:
-        """Dense rendering of every sample (no cache yet): samples past ``far`` have ``delta = 0``."""
-        n, s = t.shape
-        pts = (rays.origins[:, None] + t[..., None] * rays.directions[:, None]).reshape(-1, 3)
-        values = interp_cf(torch.cat([self.density_coarse, self.color_coarse]), pts, self.bounds).view(n, s, 4)
-        tau = F.softplus(values[..., 0] + self.shift) * (delta / self.unit)
-        weights, t_final = render_weights(tau)
-        rgb = torch.einsum("rs,rsc->rc", weights, torch.sigmoid(values[..., 1:])) + t_final[:, None] * background
-        depth = (weights * t).sum(-1) + t_final * far
-        return RenderOutput(rgb=rgb, acc=1.0 - t_final, depth=depth, samples_evaluated=int((delta > 0).sum()))
-
-
-def _dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
-    """Grow a (X, Y, Z) boolean mask by ``radius`` voxels (max pooling)."""
-    k = 2 * radius + 1
-    return F.max_pool3d(mask[None, None].float(), k, stride=1, padding=radius)[0, 0] > 0
+        if train:
+            jitter = torch.rand(n, generator=generator, dtype=dtype, device="cpu").to(device)
+        else:
+            jitter = torch.full((n,), 0.5, dtype=dtype, device=device)
+        ray_idx, t, delta = march_packed(near, far, cfg.stepsize * self.voxel, jitter)
+        # Sample positions in corner coordinates of the current grid (3, M), from per-ray origins/directions.
+        top = torch.tensor([s - 1 for s in self.size], dtype=dtype, device=device)
+        lo = self.bounds[0].to(dtype)
+        to_grid = top / (self.bounds[1].to(dtype) - lo)
+        x = torch.addcmul(((rays.origins - lo) * to_grid).t().contiguous().index_select(1, ray_idx), t[None],
+                          (rays.directions * to_grid).t().contiguous().index_select(1, ray_idx))
+        if fine and cfg.empty_space_skipping and self.mask.numel() > 1:
+            mask_size = tuple(self.mask.shape)
+            xm = x if mask_size == self.size else x * ((torch.tensor(mask_size, dtype=dtype, device=device) - 1) / top)[:, None]
+            keep = torch.nonzero(self.mask.view(-1)[nearest_from_coords(xm, mask_size)])[:, 0]  # type: ignore[arg-type]
+            ray_idx, t, delta, x = ray_idx[keep], t[keep], delta[keep], take_columns(x, keep)
+        density = self._density_grid().view(-1, 1)
+        per_unit = delta / self.unit
+        evaluated = int(ray_idx.shape[0])
+        if cfg.early_stop_eps > 0 and evaluated:
+            counts = torch.bincount(ray_idx, minlength=n)
+            first = torch.cumsum(counts, 0) - counts
+            live, evaluated = self._live_counts(density, x, per_unit, first, counts)
+            total = int(live.sum())
+            ray_idx = torch.repeat_interleave(torch.arange(n, device=device), live, output_size=total)
+            pos = (first - (torch.cumsum(live, 0) - live)).index_select(0, ray_idx) + torch.arange(total, device=device)
+            t, per_unit, x = t[pos], per_unit[pos], take_columns(x, pos)
+        idx, w = corners_from_coords(x, self.size)
+        tau = F.softplus(trilinear_gather(density, idx, w)[:, 0] + self.shift) * per_unit
+        weights, t_final = packed_weights(tau, ray_idx, n)
+        sel = torch.nonzero(weights.detach() > (cfg.fast_color_thres if fine else cfg.coarse_fast_color_thres))[:, 0]
+        ray_c, w_c = ray_idx.index_select(0, sel), weights.index_select(0, sel)
+        if self.feature_size != self.size:
+            scale = (torch.tensor(self.feature_size, dtype=dtype, device=device) - 1) / top
+            idx_c, w8_c = corners_from_coords(take_columns(x, sel) * scale[:, None], self.feature_size)
+        elif sel.numel() == weights.numel():
+            idx_c, w8_c = idx, w
+        else:
+            idx_c, w8_c = take_columns(idx, sel), take_columns(w, sel)
+        if not fine:
+            logits = trilinear_gather(self.color_coarse, idx_c, w8_c)
+        else:
+            feats = trilinear_gather(self.features, idx_c, w8_c)
+            logits = feats[:, :3]
+            if cfg.view_dependent:
+                view = positional_encoding(rays.directions, cfg.dir_freqs)
+                logits = logits + self.mlp(feats[:, 3:], view, ray_c)
+        colour = torch.sigmoid(logits)
+        rgb = weights.new_zeros(n, 3).index_add(0, ray_c, w_c[:, None] * colour)
+        rgb = rgb + t_final[:, None] * background
+        depth = weights.new_zeros(n).index_add(0, ray_idx, weights * t) + t_final * far
+        return RenderOutput(rgb=rgb, acc=1.0 - t_final, depth=depth, samples_evaluated=evaluated)
