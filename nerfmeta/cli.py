@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.inspect",
     "nerfmeta.commands.fit",
     "nerfmeta.commands.make_collection",
+    "nerfmeta.commands.pretrain",
     "nerfmeta.commands.demo",
     "nerfmeta.commands.meta_train",
 )

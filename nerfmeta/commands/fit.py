@@ -13,7 +13,15 @@ from nerfmeta.data.registry import parse_background
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig, StepRecord
-from nerfmeta.fit.run import RunConfig, run_fit
+from nerfmeta.fit.run import RunConfig, default_backbone, run_fit
+
+FREEZE_HELP = (
+    "keep the first K layers of the initial model fixed (needs --init category:DIR or meta:DIR; default 0: "
+    "fine-tune everything). Layers are ordered input to output. nerf: trunk.0..trunk.{depth-1}, density, "
+    "feature, view.0, rgb, so K <= depth freezes the first K trunk layers, K = depth + 1 all of the geometry "
+    "(only colour adapts); the small preset has 8 layers. grid: density, features, mlp.0..mlp.{mlp_depth-1}, "
+    "so K = 1 freezes the density grid (geometry), K = 2 also the feature grid (only the colour MLP adapts)"
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -26,7 +34,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file)")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
-    p.add_argument("--backbone", choices=sorted(BACKBONES), default="grid", help="grid (DirectVoxGO-style) or nerf (MLP); default grid")
+    p.add_argument("--backbone", choices=sorted(BACKBONES), default=None,
+                   help="grid (DirectVoxGO-style) or nerf (MLP); default: the --init model's backbone, else grid")
+    p.add_argument("--init", default="scratch", metavar="SPEC",
+                   help="starting point: scratch (default), category:DIR (a 'nerfmeta pretrain category' model) or "
+                   "meta:DIR (a 'nerfmeta meta-train' initialisation); a saved init keeps its backbone config")
+    p.add_argument("--freeze", type=int, default=0, metavar="K", help=FREEZE_HELP)
     p.add_argument("--iters", type=int, default=defaults.iters, metavar="N", help=f"maximum iterations (default {defaults.iters})")
     p.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop after S seconds of optimisation")
     p.add_argument("--target-psnr", type=float, default=None, metavar="DB", help="stop once test PSNR reaches DB")
@@ -99,15 +112,20 @@ def run(args: argparse.Namespace) -> int:
         iters=args.iters, time_budget_s=args.time_budget, target_psnr=args.target_psnr, batch_rays=args.batch_rays,
         seed=args.seed, eval_every=args.eval_every, checkpoint_every=args.checkpoint_every,
     )
+    backbone = args.backbone or default_backbone(args.init)
     config = RunConfig(
-        scene=str(Path(args.scene)), backbone=args.backbone, model=parse_overrides(args.set, args.backbone),
+        scene=str(Path(args.scene)), backbone=backbone, model=parse_overrides(args.set, backbone),
         fit=fit_config, downscale=args.downscale, background=parse_background(args.background), device=args.device,
+        init=args.init, freeze=args.freeze,
     )
     bar = ProgressBar(fit_config)
     try:
         summary = run_fit(config, args.out, resume=args.resume, overwrite=args.overwrite, callbacks=[bar])
     finally:
         bar.close()
+    if summary["init"] != "scratch":
+        frozen = ", ".join(summary["frozen_layers"]) or "none"
+        print(f"started from the {summary['init']} model in {summary['init_path']} (frozen layers: {frozen})")
     print(f"test PSNR {summary['test_psnr']} dB, SSIM {summary['test_ssim']}, {summary['iters']} iterations in "
           f"{summary['time_s']:.1f} s ({summary['stop_reason']}), {summary['samples_per_ray']} samples/ray")
     print(f"results in {args.out}/ (summary.json, metrics.jsonl, psnr_vs_iter.png, psnr_vs_time.png, renders/)")

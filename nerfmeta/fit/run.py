@@ -2,12 +2,20 @@
 
 Layout of ``RUN/``::
 
-    config.json              everything needed to rerun (scene, backbone config, fit config, ...)
+    config.json              everything needed to rerun (scene, backbone config, fit config, init,
+                             freeze), plus the resolved init folder, its hash and the frozen layers
     metrics.jsonl            one line per iteration: iter, time_s, train_psnr[, test_psnr][, event]
     checkpoint.safetensors   latest checkpoint (model, optimiser, RNG, fit state), atomic
     summary.json             final figures (written at the end)
     psnr_vs_iter.png, psnr_vs_time.png
     renders/test_XXX.png     ground truth | prediction, for the first test views
+
+The starting point is data (STYLE rule 6): ``init`` is ``scratch`` (weights drawn from the seed),
+``category:DIR`` (a category model from ``nerfmeta pretrain category``) or ``meta:DIR`` (a
+meta-learned initialisation from ``nerfmeta meta-train``); both saved kinds load through the same
+code (:func:`build_initial_model`). ``freeze`` keeps the first K layers of the backbone's ordered
+layer list (:meth:`~nerfmeta.fields.base.RadianceModel.layers`) fixed. Everything else (loop,
+optimiser, learning rates, ray batch, seed) is the same for every starting point.
 """
 
 from __future__ import annotations
@@ -27,10 +35,12 @@ import torch
 
 from nerfmeta.data import load_scene
 from nerfmeta.errors import ConfigError
+from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, StepRecord, fit
-from nerfmeta.io import atomic_path, to_jsonable, write_json
+from nerfmeta.init import WEIGHTS, load_init, parse_init
+from nerfmeta.io import atomic_path, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
 
 log = logging.getLogger(__name__)
@@ -57,20 +67,126 @@ class RunConfig:
     device: str = "cpu"
     """Torch device."""
     init: str = "scratch"
-    """Where the initial weights come from."""
+    """Where the initial weights come from: ``scratch``, ``category:DIR`` or ``meta:DIR``."""
     freeze: int = 0
-    """Number of leading layers kept frozen."""
+    """Number of leading layers (of ``model.layers()``, input to output) kept frozen; needs a saved init."""
 
-    def model_config(self) -> Any:
+    def model_config(self, scene=None) -> Any:
+        """The backbone config: defaults, then ``model`` overrides, then (if the config class has
+        one and a scene is given) its ``for_scene`` rule that sizes "auto" fields for the scene."""
         base = dataclasses.asdict(default_config(self.backbone))
-        return config_from_dict(self.backbone, {**base, **self.model})
+        config = config_from_dict(self.backbone, {**base, **self.model})
+        if scene is not None and hasattr(config, "for_scene"):
+            config = config.for_scene(scene)
+        return config
 
     @staticmethod
     def from_json(data: dict[str, Any]) -> "RunConfig":
-        data = dict(data)
+        data = {k: v for k, v in data.items() if k not in RESOLVED_KEYS}
         data["fit"] = FitConfig(**data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         return RunConfig(**data)
+
+
+RESOLVED_KEYS = ("init_kind", "init_path", "init_sha256", "frozen_layers")
+"""Keys ``config.json`` records beside the :class:`RunConfig` fields (what ``init`` and ``freeze`` resolved to)."""
+
+
+@dataclass(frozen=True)
+class InitInfo:
+    """What a fit started from: the resolved ``init`` and ``freeze`` (written to config and summary).
+
+    Attributes:
+        kind: ``scratch``, ``category`` or ``meta``.
+        path: the initialisation folder (absolute), None for scratch.
+        sha256: SHA-256 of its weights file, None for scratch.
+        meta: the saved initialisation's training facts (category, scenes, steps, PSNR, ...).
+        frozen_layers: names of the frozen layers, input to output.
+        frozen_parameters: names of their parameters.
+    """
+
+    kind: str
+    path: Path | None
+    sha256: str | None
+    meta: dict[str, Any]
+    frozen_layers: tuple[str, ...]
+    frozen_parameters: tuple[str, ...]
+
+    def as_json(self) -> dict[str, Any]:
+        return {"init_kind": self.kind, "init_path": None if self.path is None else str(self.path),
+                "init_sha256": self.sha256, "frozen_layers": list(self.frozen_layers)}
+
+
+def default_backbone(init: str) -> str:
+    """The backbone a fit uses when none is named: the saved one for a saved init, else ``grid``."""
+    kind, folder = parse_init(init)
+    if folder is None:
+        return "grid"
+    return load_init(folder, expect_kind=kind).backbone
+
+
+def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple[RadianceModel, Any, InitInfo]:
+    """The model a fit starts from, its backbone config, and what it was built from, frozen layers frozen.
+
+    Scratch: the backbone config (defaults, ``--set`` overrides, ``for_scene`` sizing) with weights
+    from ``config.fit.seed``. Saved (``category:DIR`` / ``meta:DIR``): the saved backbone config,
+    structure and weights, unchanged (hash checked); ``config.backbone`` must name the saved
+    backbone and every ``--set`` override must equal the saved value, since a transfer fit
+    continues the saved architecture. Then the first ``config.freeze`` layers are frozen.
+
+    Raises:
+        ConfigError: a bad init spec or folder, another backbone or architecture, a ``freeze``
+            out of ``0 .. n_layers - 1`` or given for a scratch fit (one line each).
+    """
+    kind, folder = parse_init(config.init)
+    if config.freeze < 0:
+        raise ConfigError(f"--freeze {config.freeze}: must be 0 or more")
+    if folder is None:
+        if config.freeze:
+            raise ConfigError(f"--freeze {config.freeze} needs --init category:DIR or meta:DIR; "
+                              "a scratch fit has no learned layers to keep")
+        model_config = config.model_config(scene)
+        model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
+        info = InitInfo("scratch", None, None, {}, (), ())
+        return model, model_config, info
+    saved = load_init(folder, expect_kind=kind)
+    if saved.backbone != config.backbone:
+        raise ConfigError(f"--init {config.init}: holds a {saved.backbone} model, not {config.backbone}; "
+                          f"pass --backbone {saved.backbone} (or leave --backbone out)")
+    saved_values = to_jsonable(saved.model_config)
+    for key, value in config.model.items():
+        wanted = to_jsonable(getattr(config_from_dict(config.backbone, {**saved_values, key: value}), key))
+        if wanted != saved_values.get(key):
+            raise ConfigError(f"--set {key}={json.dumps(value)}: the {kind} model in {folder} has {key}="
+                              f"{json.dumps(saved_values.get(key))}; a transfer fit keeps the saved backbone config "
+                              f"(drop --set {key})")
+    model = saved.build(device=device, seed=config.fit.seed)
+    _warn_if_outside(model, scene, folder)
+    trained_on = saved.meta.get("background")
+    if trained_on is not None and tuple(float(v) for v in trained_on) != tuple(config.background):
+        log.warning("%s was trained on background %s, this fit uses %s: transfer across backgrounds helps less",
+                    folder, list(trained_on), list(config.background))
+    layers = model.layers()
+    if config.freeze >= len(layers):
+        raise ConfigError(f"--freeze {config.freeze}: this {saved.backbone} model has {len(layers)} layers "
+                          f"({', '.join(layer.name for layer in layers)}); choose 0..{len(layers) - 1} "
+                          "(freezing all of them leaves nothing to fit)")
+    frozen = model.freeze_first(config.freeze)
+    info = InitInfo(kind, folder.resolve(), sha256_file(folder / WEIGHTS), saved.meta,
+                    tuple(layer.name for layer in layers[: config.freeze]), tuple(frozen))
+    return model, saved.model_config, info
+
+
+def _warn_if_outside(model: RadianceModel, scene, folder: Path) -> None:
+    """Log a warning when the scene's box is not inside the box the saved model lives in."""
+    box = getattr(model, "bounds", None)
+    if not isinstance(box, torch.Tensor) or tuple(box.shape) != (2, 3):
+        return
+    box, bounds = box.detach().cpu(), scene.bounds.detach().cpu()
+    if bool((bounds[0] < box[0] - 1e-3).any() or (bounds[1] > box[1] + 1e-3).any()):
+        log.warning("%s: the scene's box %s is not inside the saved model's box %s; content outside it cannot be fitted",
+                    folder, [[round(v, 3) for v in row] for row in bounds.tolist()],
+                    [[round(v, 3) for v in row] for row in box.tolist()])
 
 
 class MetricsWriter:
@@ -135,15 +251,14 @@ def run_fit(
         if Path(saved.scene).resolve() != Path(config.scene).resolve():
             raise ConfigError(f"{out} was a run on {saved.scene}, not {config.scene}")
         config = saved
-    model_config = config.model_config()
+    config.model_config()  # validate the overrides before any slow work
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background)
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
-    model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
-    frozen = model.freeze_first(config.freeze) if config.freeze else []
+    model, model_config, init = build_initial_model(config, scene, device)
 
     if overwrite and out.exists():
         shutil.rmtree(out)
@@ -157,7 +272,7 @@ def run_fit(
         with atomic_path(out / "metrics.jsonl") as tmp:
             tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
     else:
-        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config)})
+        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json()})
     writer = MetricsWriter(out / "metrics.jsonl")
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     try:
@@ -167,23 +282,23 @@ def run_fit(
         )
     finally:
         writer.close()
-    summary = summarize(config, scene, model, result, frozen, out)
+    summary = summarize(config, scene, model, result, init, out)
     write_outputs(out, summary, result)
     return summary
 
 
-def _optimizer_description(model, fit_config: FitConfig, frozen: list[str]) -> dict[str, Any]:
+def _optimizer_description(model, fit_config: FitConfig, frozen: Sequence[str]) -> dict[str, Any]:
     return {
         "name": "Adam",
         "eps": fit_config.adam_eps,
         "lr_groups": {g.name: g.lr for g in model.param_groups()},
         "lr_decay": f"exponential to x{fit_config.lr_decay:g} at the end of the iterations or time budget",
         "batch_rays": fit_config.batch_rays,
-        "frozen_parameters": frozen,
+        "frozen_parameters": list(frozen),
     }
 
 
-def summarize(config: RunConfig, scene, model, result: FitResult, frozen: list[str], out: Path) -> dict[str, Any]:
+def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo, out: Path) -> dict[str, Any]:
     """The figures of a finished fit (``summary.json``)."""
     records = read_metrics(out / "metrics.jsonl")
     final = result.final
@@ -193,8 +308,12 @@ def summarize(config: RunConfig, scene, model, result: FitResult, frozen: list[s
         "scene": config.scene,
         "category": scene.category,
         "backbone": config.backbone,
-        "init": config.init,
+        "init": init.kind,
+        "init_path": None if init.path is None else str(init.path),
+        "init_sha256": init.sha256,
+        "init_source": init.meta,
         "freeze": config.freeze,
+        "frozen_layers": list(init.frozen_layers),
         "iters": result.state.step,
         "time_s": round(result.state.time_s, 3),
         "eval_time_s": round(result.state.eval_time_s, 3),
@@ -210,7 +329,7 @@ def summarize(config: RunConfig, scene, model, result: FitResult, frozen: list[s
         "train_samples_per_ray": round(sum(train_spr) / len(train_spr), 2) if train_spr else None,
         "peak_rss_mb": round(peak_kb / 1024 if sys.platform != "darwin" else peak_kb / 2**20, 1),
         "device": config.device,
-        "optimizer": _optimizer_description(model, config.fit, frozen),
+        "optimizer": _optimizer_description(model, config.fit, init.frozen_parameters),
         "n_parameters": sum(p.numel() for p in model.parameters()),
     }
 
