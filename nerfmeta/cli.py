@@ -24,6 +24,8 @@ COMMAND_MODULES = (
     "nerfmeta.commands.pretrain",
     "nerfmeta.commands.demo",
     "nerfmeta.commands.meta_train",
+    "nerfmeta.commands.classifier",
+    "nerfmeta.commands.classify",
 )
 
 

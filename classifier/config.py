@@ -1,0 +1,158 @@
+"""Configuration of classifier training: frozen dataclasses, saved as JSON beside every model.
+
+The defaults are the recipe the benchmark measured (``scripts/bench_classifier.py``, results in
+``BENCHMARKS.md``): ResNet-18 from scratch on 64 x 64 views, AdamW with a one-cycle schedule,
+object-render augmentations, and the ``mahalanobis`` unknown score calibrated to keep 99 % of
+the known validation scenes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from nerfmeta.errors import ConfigError
+
+ARCHITECTURES = ("resnet18", "resnet50")
+"""torchvision ResNet builders the classifier can use."""
+
+STEMS = ("imagenet", "3x3s2", "3x3s1")
+"""ResNet stems: torchvision's 7x7/2 conv + max-pool, or a 3x3 conv of stride 2 or 1 without max-pool."""
+
+SCORES = ("msp", "energy", "mahalanobis")
+"""Unknown-category scores (higher = more like a known category); see :mod:`classifier.predict`."""
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Random changes applied to each training view (object renders with an alpha channel)."""
+
+    scale: tuple[float, float] = (0.75, 1.2)
+    """Zoom range of the object (below 1 shrinks it, padding with background; above 1 crops)."""
+    translate: float = 0.1
+    """Largest shift of the object, as a fraction of the image size, in x and in y."""
+    rotate_degrees: float = 10.0
+    """Largest in-plane rotation, either way."""
+    hflip: float = 0.5
+    """Probability of a left-right flip."""
+    background: float = 0.5
+    """Probability of re-compositing on a random uniform colour instead of the training background."""
+    brightness: float = 0.3
+    """Brightness factor drawn from ``[1 - b, 1 + b]``."""
+    contrast: float = 0.3
+    """Contrast factor drawn from ``[1 - c, 1 + c]``."""
+    saturation: float = 0.3
+    """Saturation factor drawn from ``[1 - s, 1 + s]``."""
+    hue: float = 0.0
+    """Hue shift drawn from ``[-h, h]`` (in turns, at most 0.5)."""
+
+    def validate(self) -> None:
+        lo, hi = self.scale
+        if not (0.0 < lo <= hi and math.isfinite(hi)):
+            raise ConfigError(f"augment scale {self.scale} must be 0 < low <= high")
+        for name in ("hflip", "background"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"augment {name} probability must be in [0, 1], got {getattr(self, name)}")
+        for name in ("translate", "rotate_degrees", "brightness", "contrast", "saturation"):
+            if not getattr(self, name) >= 0.0:
+                raise ConfigError(f"augment {name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.hue <= 0.5:
+            raise ConfigError(f"augment hue must be in [0, 0.5], got {self.hue}")
+
+
+NO_AUGMENT = AugmentConfig(
+    scale=(1.0, 1.0), translate=0.0, rotate_degrees=0.0, hflip=0.0, background=0.0,
+    brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0,
+)
+"""Augmentations switched off (tests and ablations)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How ``nerfmeta classifier train`` builds and trains a scene classifier."""
+
+    arch: str = "resnet18"
+    """Backbone: ``resnet18`` or ``resnet50`` (torchvision builders)."""
+    stem: str = "imagenet"
+    """ResNet stem, one of :data:`STEMS` (the 3x3 ones keep more resolution for more compute; see BENCHMARKS.md)."""
+    input_size: int = 64
+    """Views are padded to square on the background and resized to this many pixels."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """RGB the views are composited on for training and for classification."""
+    mean: tuple[float, float, float] = IMAGENET_MEAN
+    """Per-channel mean subtracted after compositing (ImageNet's, so local pretrained weights fit)."""
+    std: tuple[float, float, float] = IMAGENET_STD
+    """Per-channel standard deviation divided by after the mean."""
+    epochs: int = 12
+    """Passes over the training views."""
+    batch_size: int = 64
+    """Views per optimisation step."""
+    lr: float = 2e-3
+    """Peak learning rate of the one-cycle schedule (AdamW)."""
+    weight_decay: float = 0.05
+    """AdamW decoupled weight decay."""
+    warmup_fraction: float = 0.15
+    """Fraction of the steps spent raising the learning rate to ``lr`` (then cosine decay to 0)."""
+    time_budget_s: float | None = None
+    """Stop after this many seconds of training (validation included); the schedule follows time when it ends first."""
+    monitor_views: int = 4
+    """Views per validation scene scored after each epoch for the curve (calibration uses all views)."""
+    seed: int = 0
+    """Seed of weights, shuffling and augmentations."""
+    holdout_categories: tuple[str, ...] = ()
+    """Categories left out of training (their scenes are used only to report unknown detection)."""
+    score: str = "mahalanobis"
+    """Unknown score used by the decision: ``msp``, ``energy`` or ``mahalanobis``."""
+    keep_fraction: float = 0.99
+    """Threshold calibrated so that this fraction of the known validation scenes is not flagged unknown."""
+    stats_views: int = 8
+    """Views per training scene whose features fit the unknown-score statistics (fewer = faster calibration)."""
+    covariance_shrinkage: float = 0.1
+    """Weight of the identity (scaled to the mean variance) mixed into the two feature covariances."""
+    weights: str | None = None
+    """Local file of pretrained backbone weights (a torchvision state dict; the fc layer is skipped)."""
+    device: str = "cpu"
+    """Torch device to train on."""
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    """Training augmentations."""
+
+    def validate(self) -> None:
+        """Raise :class:`ConfigError` (one line) for any value that cannot be trained."""
+        if self.arch not in ARCHITECTURES:
+            raise ConfigError(f"--arch {self.arch!r}: expected one of {', '.join(ARCHITECTURES)}")
+        if self.stem not in STEMS:
+            raise ConfigError(f"--stem {self.stem!r}: expected one of {', '.join(STEMS)}")
+        if self.score not in SCORES:
+            raise ConfigError(f"--score {self.score!r}: expected one of {', '.join(SCORES)}")
+        if not 16 <= self.input_size <= 1024:
+            raise ConfigError(f"input size must be between 16 and 1024 pixels, got {self.input_size}")
+        for name in ("epochs", "batch_size", "monitor_views", "stats_views"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"--lr must be a positive number, got {self.lr}")
+        if not self.weight_decay >= 0:
+            raise ConfigError(f"weight decay must be >= 0, got {self.weight_decay}")
+        if not 0.0 <= self.warmup_fraction < 1.0:
+            raise ConfigError(f"warmup fraction must be in [0, 1), got {self.warmup_fraction}")
+        if self.time_budget_s is not None and not self.time_budget_s > 0:
+            raise ConfigError(f"--time-budget must be > 0 seconds, got {self.time_budget_s}")
+        if not 0.5 <= self.keep_fraction <= 1.0:
+            raise ConfigError(f"--keep-fraction must be in [0.5, 1], got {self.keep_fraction}")
+        if not 0.0 <= self.covariance_shrinkage <= 1.0:
+            raise ConfigError(f"covariance shrinkage must be in [0, 1], got {self.covariance_shrinkage}")
+        if self.seed < 0:
+            raise ConfigError(f"--seed must be >= 0, got {self.seed}")
+        for name in ("background", "mean"):
+            values = getattr(self, name)
+            if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+                raise ConfigError(f"{name} must be three values in [0, 1], got {values}")
+        if len(self.std) != 3 or not all(v > 0 for v in self.std):
+            raise ConfigError(f"std must be three positive values, got {self.std}")
+        if len(set(self.holdout_categories)) != len(self.holdout_categories):
+            raise ConfigError(f"--holdout-categories repeats a name: {','.join(self.holdout_categories)}")
+        self.augment.validate()

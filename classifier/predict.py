@@ -1,0 +1,277 @@
+"""Scene-level prediction and the unknown-category decision: pure functions over tensors.
+
+A scene is classified from all the views given for it: each view's logits go through a softmax
+and the probabilities are averaged over the views (as in the source work). The unknown decision
+compares a scene score with a threshold; every score here is oriented so that **higher means
+more like a known category**, and a scene is unknown when its score is below the threshold.
+
+Scores (names as in :data:`classifier.config.SCORES`):
+
+- ``msp``: the largest averaged probability (maximum softmax probability).
+- ``energy``: the negative free energy ``logsumexp(logits)`` of each view, averaged over views.
+- ``mahalanobis``: minus the squared Mahalanobis distance of the scene's mean penultimate
+  feature (over its views) to the nearest class, under a two-level Gaussian model of scenes and
+  views fitted to the training scenes (:class:`FeatureStats`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from classifier.config import SCORES
+
+
+@dataclass(frozen=True)
+class FeatureStats:
+    """A two-level Gaussian model of penultimate features: class -> scene -> view.
+
+    A scene of class ``c`` has a mean feature ``m ~ N(means[c], between)``; each of its views has
+    features ``f ~ N(m, within)``. The mean of ``n`` views of a scene is then distributed as
+    ``N(means[c], between + within / n)``, which is what the ``mahalanobis`` score measures
+    against: a scene seen in many views is judged on its mean with the matching spread, and a
+    single image gets the wider spread of one view.
+
+    Attributes:
+        means: (n_classes, dim) class means of the training scenes' mean features.
+        between: (dim, dim) covariance of scene means around their class mean (shrunk, positive definite).
+        within: (dim, dim) covariance of view features around their scene mean (shrunk).
+    """
+
+    means: torch.Tensor
+    between: torch.Tensor
+    within: torch.Tensor
+
+
+def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:
+    """Average of the per-view softmax.
+
+    Args:
+        logits: (n_views, n_classes) one row per view of the scene.
+
+    Returns:
+        (n_classes,) probabilities summing to 1.
+    """
+    if logits.dim() != 2 or logits.shape[0] < 1:
+        raise ValueError(f"logits must be (n_views >= 1, n_classes), got {tuple(logits.shape)}")
+    return torch.softmax(logits, dim=-1).mean(dim=0)
+
+
+def msp_score(logits: torch.Tensor) -> torch.Tensor:
+    """Maximum of the view-averaged softmax. logits: (n_views, n_classes) -> scalar in (0, 1]."""
+    return scene_probabilities(logits).max()
+
+
+def energy_score(logits: torch.Tensor) -> torch.Tensor:
+    """Mean over views of ``logsumexp(logits)`` (negative free energy). logits: (n_views, n_classes) -> scalar."""
+    return torch.logsumexp(logits, dim=-1).mean()
+
+
+def scene_precision(stats: FeatureStats, n_views: int) -> torch.Tensor:
+    """(dim, dim) inverse of ``between + within / n_views``, in float64."""
+    cov = stats.between.double() + stats.within.double() / max(1, n_views)
+    return torch.linalg.inv(cov)
+
+
+def mahalanobis_distances(points: torch.Tensor, means: torch.Tensor, precision: torch.Tensor) -> torch.Tensor:
+    """Squared Mahalanobis distance of each point to each mean.
+
+    Args:
+        points: (n, dim).
+        means: (n_classes, dim).
+        precision: (dim, dim) symmetric positive definite.
+
+    Returns:
+        (n, n_classes) non-negative distances, in ``precision``'s dtype.
+    """
+    diff = points.to(precision.dtype)[:, None, :] - means.to(precision.dtype)[None, :, :]  # (n, C, D)
+    return torch.einsum("ncd,de,nce->nc", diff, precision, diff).clamp_min(0.0)
+
+
+def mahalanobis_score(features: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
+    """Minus the squared Mahalanobis distance of the scene's mean feature to the nearest class.
+
+    Args:
+        features: (n_views, dim) penultimate features of the scene's views.
+        stats: the two-level feature model (see :class:`FeatureStats`).
+
+    Returns:
+        scalar (float64), at most 0; the spread used is ``between + within / n_views``.
+    """
+    precision = scene_precision(stats, features.shape[0])
+    return -mahalanobis_distances(features.mean(dim=0, keepdim=True), stats.means, precision).min()
+
+
+def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: FeatureStats | None) -> dict[str, float]:
+    """Every unknown score of one scene (``mahalanobis`` only when features and stats are given).
+
+    Args:
+        logits: (n_views, n_classes).
+        features: (n_views, dim) penultimate features, or None.
+        stats: feature statistics of the training views, or None.
+    """
+    scores = {"msp": float(msp_score(logits)), "energy": float(energy_score(logits))}
+    if features is not None and stats is not None:
+        scores["mahalanobis"] = float(mahalanobis_score(features, stats))
+    return scores
+
+
+def is_unknown(score: float | torch.Tensor, threshold: float) -> bool | torch.Tensor:
+    """True where the score falls below the threshold (works on floats and on tensors)."""
+    return score < threshold
+
+
+def calibrate_threshold(known_scores: torch.Tensor, keep_fraction: float) -> float:
+    """Threshold that keeps ``keep_fraction`` of the known scenes (scores at or above it).
+
+    The threshold is the ``1 - keep_fraction`` quantile of the scores (linear interpolation);
+    ``keep_fraction = 1`` gives the smallest score, so every calibration scene is kept.
+
+    Args:
+        known_scores: (n,) scores of validation scenes of known categories, n >= 1.
+        keep_fraction: in (0, 1].
+    """
+    if known_scores.numel() < 1:
+        raise ValueError("calibration needs at least one known scene")
+    if not 0.0 < keep_fraction <= 1.0:
+        raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
+    return float(torch.quantile(known_scores.double().flatten(), 1.0 - keep_fraction))
+
+
+def auroc(known_scores: torch.Tensor, unknown_scores: torch.Tensor) -> float:
+    """Area under the ROC curve of telling known (higher score) from unknown scenes.
+
+    The probability that a random known scene scores above a random unknown one, ties counting
+    half (Mann-Whitney U). 1 is perfect, 0.5 is chance.
+
+    Args:
+        known_scores: (n_known,), n_known >= 1.
+        unknown_scores: (n_unknown,), n_unknown >= 1.
+    """
+    k = known_scores.double().flatten()[:, None]
+    u = unknown_scores.double().flatten()[None, :]
+    if k.numel() < 1 or u.numel() < 1:
+        raise ValueError("AUROC needs at least one known and one unknown score")
+    return float(((k > u).double() + 0.5 * (k == u).double()).mean())
+
+
+def _shrink(cov: torch.Tensor, shrinkage: float) -> torch.Tensor:
+    """``(1 - shrinkage) * cov + shrinkage * mean(diag cov) * I``, plus a tiny floor on the diagonal."""
+    eye = torch.eye(cov.shape[0], dtype=cov.dtype)
+    scale = float(cov.diagonal().mean())
+    return (1.0 - shrinkage) * cov + (shrinkage * scale + 1e-6 * max(scale, 1e-6)) * eye
+
+
+def fit_feature_stats(
+    features: torch.Tensor, labels: torch.Tensor, scene_index: torch.Tensor, n_classes: int, shrinkage: float
+) -> FeatureStats:
+    """Fit the two-level feature model (:class:`FeatureStats`) to the views of training scenes.
+
+    ``within`` is the pooled covariance of views around their scene mean. The scene means scatter
+    around their class mean with covariance ``between + within / n`` (``n`` views each, harmonic
+    mean over scenes), so ``between`` is that scatter minus ``within / n``, with negative
+    eigenvalues clipped. Both are then shrunk towards a multiple of the identity:
+    ``(1 - shrinkage) * S + shrinkage * mean(diag S) * I``.
+
+    Args:
+        features: (n_views, dim) penultimate features of the training views (not augmented).
+        labels: (n_views,) class of each view; every class present.
+        scene_index: (n_views,) scene of each view (views of a scene share a label).
+        n_classes: number of classes.
+        shrinkage: in [0, 1].
+    """
+    f = features.double()
+    scenes, inverse, counts = torch.unique(scene_index, return_inverse=True, return_counts=True)
+    n_scenes = scenes.numel()
+    scene_means = torch.zeros(n_scenes, f.shape[1], dtype=torch.float64).index_add_(0, inverse, f) / counts[:, None]
+    scene_labels = torch.zeros(n_scenes, dtype=torch.long).scatter_(0, inverse, labels)
+    view_dev = f - scene_means[inverse]
+    within = view_dev.T @ view_dev / max(1, f.shape[0] - n_scenes)
+    means = torch.zeros(n_classes, f.shape[1], dtype=torch.float64)
+    for c in range(n_classes):
+        rows = scene_means[scene_labels == c]
+        if rows.shape[0] == 0:
+            raise ValueError(f"class {c} has no training scene")
+        means[c] = rows.mean(dim=0)
+    scene_dev = scene_means - means[scene_labels]
+    scatter = scene_dev.T @ scene_dev / max(1, n_scenes - n_classes)
+    n_harmonic = float(n_scenes / (1.0 / counts.double()).sum())
+    evals, evecs = torch.linalg.eigh(scatter - within / n_harmonic)
+    between = (evecs * evals.clamp_min(0.0)) @ evecs.T
+    return FeatureStats(means=means.float(), between=_shrink(between, shrinkage).float(), within=_shrink(within, shrinkage).float())
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The answer for one scene.
+
+    Attributes:
+        category: the most probable known category (reported even when ``unknown``).
+        confidence: its view-averaged probability.
+        unknown: True when the scene's score is below the calibrated threshold.
+        probabilities: category -> view-averaged probability.
+        views: number of views the prediction averaged over.
+        score_name: the unknown score used (``msp``, ``energy`` or ``mahalanobis``).
+        score: the scene's value of that score.
+        threshold: the calibrated threshold it was compared with.
+    """
+
+    category: str
+    confidence: float
+    unknown: bool
+    probabilities: dict[str, float]
+    views: int
+    score_name: str
+    score: float
+    threshold: float
+
+    def to_json(self) -> dict:
+        """The document ``nerfmeta classify`` prints."""
+        return {
+            "category": self.category,
+            "confidence": self.confidence,
+            "unknown": self.unknown,
+            "probabilities": dict(self.probabilities),
+            "views": self.views,
+            "score": {"name": self.score_name, "value": self.score, "threshold": self.threshold},
+        }
+
+
+def decide(
+    logits: torch.Tensor,
+    features: torch.Tensor | None,
+    categories: tuple[str, ...],
+    score_name: str,
+    threshold: float,
+    stats: FeatureStats | None = None,
+) -> Prediction:
+    """Scene-level prediction from per-view outputs.
+
+    Args:
+        logits: (n_views, n_classes) per-view logits.
+        features: (n_views, dim) per-view penultimate features (needed by ``mahalanobis``).
+        categories: class names, in logit order.
+        score_name: one of :data:`classifier.config.SCORES`.
+        threshold: scenes scoring below it are unknown.
+        stats: feature statistics (needed by ``mahalanobis``).
+    """
+    if score_name not in SCORES:
+        raise ValueError(f"unknown score {score_name!r}")
+    if logits.shape[-1] != len(categories):
+        raise ValueError(f"{logits.shape[-1]} logits per view for {len(categories)} categories")
+    probs = scene_probabilities(logits)
+    scores = scene_scores(logits, features, stats)
+    if score_name not in scores:
+        raise ValueError(f"score {score_name!r} needs features and feature statistics")
+    best = int(probs.argmax())
+    return Prediction(
+        category=categories[best],
+        confidence=float(probs[best]),
+        unknown=bool(is_unknown(scores[score_name], threshold)),
+        probabilities={c: float(p) for c, p in zip(categories, probs)},
+        views=int(logits.shape[0]),
+        score_name=score_name,
+        score=scores[score_name],
+        threshold=float(threshold),
+    )

@@ -1,0 +1,284 @@
+"""A classifier folder on disk, and classifying views with a loaded classifier.
+
+Layout (written by ``nerfmeta classifier train``)::
+
+    DIR/model.safetensors    network weights (``net.*``) and feature statistics (``feature_stats.*``)
+    DIR/classifier.json      categories, input size, background, normalisation, unknown score and
+                             threshold, the SHA-256 of model.safetensors, training recipe, metrics
+    DIR/training_curve.png   loss and validation accuracy during training
+    DIR/history.json         the numbers behind the curve
+
+:func:`load_classifier` checks everything before use (files present, JSON valid, hash of the
+weights, tensor names and shapes) and raises :class:`ClassifierError`, one line, otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from nerfmeta.errors import NerfmetaError
+from nerfmeta.io import load_tensors, save_tensors, sha256_file, write_json
+
+from classifier.config import ARCHITECTURES, SCORES, STEMS
+from classifier.data import RGB, composite, normalize
+from classifier.model import SceneNet, empty_model
+from classifier.predict import FeatureStats, Prediction, decide
+
+FORMAT = "nerfmeta-classifier"
+VERSION = 1
+WEIGHTS_FILE = "model.safetensors"
+META_FILE = "classifier.json"
+CURVE_FILE = "training_curve.png"
+HISTORY_FILE = "history.json"
+STATS_PREFIX = "feature_stats."
+NO_CLASSIFIER_HINT = (
+    "pass --classifier DIR, a folder written by 'nerfmeta classifier train' "
+    "(required until the model zoo ships a default classifier)"
+)
+
+
+class ClassifierError(NerfmetaError):
+    """A classifier folder is missing, incomplete, corrupted or inconsistent."""
+
+
+@dataclass(frozen=True)
+class ClassifierMeta:
+    """What a model needs besides its weights to classify a scene (from ``classifier.json``)."""
+
+    categories: tuple[str, ...]
+    """Class names in logit order."""
+    arch: str
+    """torchvision builder name (``resnet18`` or ``resnet50``)."""
+    stem: str
+    """ResNet stem (see :data:`classifier.config.STEMS`)."""
+    input_size: int
+    """Side of the square input, in pixels."""
+    background: RGB
+    """RGB views are composited on."""
+    mean: RGB
+    """Normalisation mean per channel."""
+    std: RGB
+    """Normalisation standard deviation per channel."""
+    score: str
+    """Unknown score the decision uses."""
+    threshold: float
+    """Scenes whose score is below this are unknown."""
+    thresholds: dict[str, float] = field(default_factory=dict)
+    """Calibrated threshold of every score (same keep fraction), for comparisons."""
+
+
+@dataclass(frozen=True)
+class Classifier:
+    """A ready-to-use classifier: network (eval mode), feature statistics and metadata."""
+
+    meta: ClassifierMeta
+    model: SceneNet
+    stats: FeatureStats
+
+    def with_score(self, score: str) -> "Classifier":
+        """The same classifier deciding with another calibrated score."""
+        if score not in self.meta.thresholds:
+            raise ClassifierError(f"score {score!r} has no calibrated threshold (have {', '.join(self.meta.thresholds)})")
+        meta = ClassifierMeta(**{**self.meta.__dict__, "score": score, "threshold": self.meta.thresholds[score]})
+        return Classifier(meta, self.model, self.stats)
+
+
+def model_inputs(views: torch.Tensor, meta: ClassifierMeta) -> torch.Tensor:
+    """(n, 4, S, S) premultiplied RGBA -> (n, 3, S, S) composited on the background and normalised."""
+    return normalize(composite(views, meta.background).clamp(0.0, 1.0), meta.mean, meta.std)
+
+
+@torch.no_grad()
+def view_outputs(model: SceneNet, inputs: torch.Tensor, batch_size: int = 128) -> tuple[torch.Tensor, torch.Tensor]:
+    """Features (n, dim) and logits (n, n_classes) of normalised inputs (n, 3, S, S), in eval mode."""
+    was_training = model.training
+    model.eval()
+    device = next(model.parameters()).device
+    feats, logits = [], []
+    try:
+        for start in range(0, inputs.shape[0], batch_size):
+            f, z = model(inputs[start : start + batch_size].to(device))
+            feats.append(f.float().cpu())
+            logits.append(z.float().cpu())
+    finally:
+        model.train(was_training)
+    return torch.cat(feats), torch.cat(logits)
+
+
+def classify_views(classifier: Classifier, views: torch.Tensor) -> Prediction:
+    """Scene-level prediction from all of a scene's views.
+
+    Args:
+        classifier: a loaded classifier.
+        views: (n_views, 4, S, S) premultiplied RGBA at the classifier's input size.
+    """
+    meta = classifier.meta
+    if views.dim() != 4 or views.shape[1] != 4 or tuple(views.shape[-2:]) != (meta.input_size, meta.input_size):
+        raise ValueError(f"views must be (n, 4, {meta.input_size}, {meta.input_size}), got {tuple(views.shape)}")
+    features, logits = view_outputs(classifier.model, model_inputs(views, meta))
+    return decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats)
+
+
+# --- saving ------------------------------------------------------------------------------------
+
+
+def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.Tensor]:
+    tensors = {k: v for k, v in model.state_dict().items()}
+    tensors[STATS_PREFIX + "means"] = stats.means
+    tensors[STATS_PREFIX + "between"] = stats.between
+    tensors[STATS_PREFIX + "within"] = stats.within
+    return tensors
+
+
+def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``model.safetensors`` and ``classifier.json`` into ``folder`` (each atomically).
+
+    Args:
+        folder: created if missing.
+        classifier: what to save.
+        extra: more top-level entries for ``classifier.json`` (recipe, metrics, ...).
+
+    Returns:
+        the path of ``classifier.json``.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    weights = folder / WEIGHTS_FILE
+    save_tensors(weights, classifier_tensors(classifier.model, classifier.stats), metadata={"format": FORMAT})
+    meta = classifier.meta
+    doc = {
+        "format": FORMAT,
+        "version": VERSION,
+        "categories": list(meta.categories),
+        "arch": meta.arch,
+        "stem": meta.stem,
+        "input": {
+            "size": meta.input_size,
+            "background": list(meta.background),
+            "normalization": {"mean": list(meta.mean), "std": list(meta.std)},
+        },
+        "unknown": {"score": meta.score, "threshold": meta.threshold, "thresholds": dict(meta.thresholds)},
+        "weights": {"file": WEIGHTS_FILE, "sha256": sha256_file(weights)},
+        **(extra or {}),
+    }
+    write_json(folder / META_FILE, doc)
+    return folder / META_FILE
+
+
+# --- loading -----------------------------------------------------------------------------------
+
+
+def _rgb(value: Any, where: str) -> RGB:
+    if not isinstance(value, list) or len(value) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in value):
+        raise ClassifierError(f"{where} must be a list of three numbers")
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def read_meta(folder: str | os.PathLike) -> tuple[ClassifierMeta, dict[str, Any]]:
+    """Parse and check ``classifier.json``; returns the metadata and the whole document."""
+    path = Path(folder) / META_FILE
+    if not path.is_file():
+        raise ClassifierError(f"{path}: file missing; is {Path(folder)} a folder written by 'nerfmeta classifier train'?")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise ClassifierError(f"{path}: cannot read ({err})") from None
+    except json.JSONDecodeError as err:
+        raise ClassifierError(f"{path}: invalid JSON at line {err.lineno} column {err.colno} (corrupted? retrain)") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ClassifierError(f"{path}: not a nerfmeta classifier (format {doc.get('format') if isinstance(doc, dict) else None!r})")
+    if doc.get("version") != VERSION:
+        raise ClassifierError(f"{path}: classifier format version {doc.get('version')!r}, this nerfmeta reads {VERSION}")
+    try:
+        categories = doc["categories"]
+        inp, unknown, norm = doc["input"], doc["unknown"], doc["input"]["normalization"]
+        if not isinstance(categories, list) or len(categories) < 2 or not all(isinstance(c, str) for c in categories):
+            raise ClassifierError(f"{path}: 'categories' must list at least two names")
+        if doc["arch"] not in ARCHITECTURES:
+            raise ClassifierError(f"{path}: arch {doc['arch']!r} is not one of {', '.join(ARCHITECTURES)}")
+        if doc["stem"] not in STEMS:
+            raise ClassifierError(f"{path}: stem {doc['stem']!r} is not one of {', '.join(STEMS)}")
+        if unknown["score"] not in SCORES:
+            raise ClassifierError(f"{path}: unknown score {unknown['score']!r} is not one of {', '.join(SCORES)}")
+        size = inp["size"]
+        if not isinstance(size, int) or size < 8:
+            raise ClassifierError(f"{path}: input size {size!r} must be an integer >= 8")
+        threshold = unknown["threshold"]
+        thresholds = {str(k): float(v) for k, v in dict(unknown.get("thresholds", {})).items()}
+        if not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+            raise ClassifierError(f"{path}: unknown threshold {threshold!r} must be a finite number")
+        std = _rgb(norm["std"], f"{path}: input.normalization.std")
+        if min(std) <= 0:
+            raise ClassifierError(f"{path}: input.normalization.std must be positive")
+        meta = ClassifierMeta(
+            categories=tuple(categories),
+            arch=doc["arch"],
+            stem=doc["stem"],
+            input_size=size,
+            background=_rgb(inp["background"], f"{path}: input.background"),
+            mean=_rgb(norm["mean"], f"{path}: input.normalization.mean"),
+            std=std,
+            score=unknown["score"],
+            threshold=float(threshold),
+            thresholds=thresholds or {unknown["score"]: float(threshold)},
+        )
+        _ = doc["weights"]["sha256"]
+    except (KeyError, TypeError, ValueError) as err:
+        raise ClassifierError(f"{path}: missing or malformed entry ({type(err).__name__}: {err}); retrain or restore the file") from None
+    return meta, doc
+
+
+def load_classifier(folder: str | os.PathLike | None, device: str | torch.device = "cpu") -> Classifier:
+    """Load and check a classifier folder.
+
+    Raises:
+        ClassifierError: no folder given, a missing or corrupted file, a SHA-256 mismatch, or
+            weights that do not fit the recorded architecture (one line each).
+    """
+    if folder is None:
+        raise ClassifierError(f"no classifier given: {NO_CLASSIFIER_HINT}")
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ClassifierError(f"{folder}: classifier folder not found; {NO_CLASSIFIER_HINT}")
+    meta, doc = read_meta(folder)
+    weights = folder / WEIGHTS_FILE
+    if not weights.is_file():
+        raise ClassifierError(f"{weights}: weights file missing; retrain with 'nerfmeta classifier train' or restore it")
+    digest = sha256_file(weights)
+    if digest != doc["weights"]["sha256"]:
+        raise ClassifierError(
+            f"{weights}: SHA-256 {digest[:12]}... does not match {str(doc['weights']['sha256'])[:12]}... recorded in "
+            f"{META_FILE} (file changed or corrupted); retrain or restore it"
+        )
+    try:
+        tensors = load_tensors(weights)
+    except Exception as err:  # safetensors raises several types for a damaged file
+        raise ClassifierError(f"{weights}: cannot read as safetensors ({type(err).__name__})") from None
+    model = empty_model(meta.arch, len(meta.categories), stem=meta.stem)
+    own = model.state_dict()
+    state = {k: v for k, v in tensors.items() if not k.startswith(STATS_PREFIX)}
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    wrong = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or wrong:
+        what = f"missing {missing[0]}" if missing else f"unexpected {unexpected[0]}" if unexpected else f"shape of {wrong[0]}"
+        raise ClassifierError(f"{weights}: tensors do not fit a {meta.arch} with {len(meta.categories)} categories ({what})")
+    model.load_state_dict(state, assign=True)
+    try:
+        stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within")))
+    except KeyError:
+        raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within)") from None
+    dim = model.feature_dim
+    if tuple(stats.means.shape) != (len(meta.categories), dim) or any(
+        tuple(m.shape) != (dim, dim) for m in (stats.between, stats.within)
+    ):
+        raise ClassifierError(f"{weights}: feature statistics have the wrong shape for {meta.arch}")
+    model.to(device).eval()
+    return Classifier(meta, model, stats)

@@ -1,0 +1,394 @@
+"""Train a scene classifier on a generated collection and calibrate its unknown threshold.
+
+Data use (nothing else is read):
+
+- **training**: every view of the collection's ``train`` scenes of the known categories (all
+  categories minus ``holdout_categories``), augmented (:func:`classifier.data.augment_views`);
+- **calibration and validation metrics**: the ``val`` scenes of the known categories, all their
+  views, without augmentation. The unknown threshold of each score is the quantile that keeps
+  ``keep_fraction`` of these scenes;
+- **held-out report**: the ``val`` scenes of the held-out categories, scored only to *report*
+  how well each score flags them (never used for the threshold);
+- the ``test`` scenes are not touched (they are for ``scripts/bench_classifier.py``).
+
+The output folder is built under a hidden sibling name and renamed into place at the end, so an
+error or an interruption never leaves a partial classifier at ``out``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
+from nerfmeta.errors import ConfigError
+from nerfmeta.io import to_jsonable, write_json
+
+from classifier.config import SCORES, TrainConfig
+from classifier.data import ViewSet, augment_views, load_view_set, normalize
+from classifier.model import SceneNet, build_model, load_pretrained
+from classifier.plots import plot_training_curve
+from classifier.predict import FeatureStats, auroc, calibrate_threshold, fit_feature_stats, scene_probabilities, scene_scores
+from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, Classifier, ClassifierMeta, model_inputs, save_classifier, view_outputs
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrainEvent:
+    """What a progress callback receives.
+
+    Attributes:
+        stage: ``load`` (a scene was read), ``step`` (an optimisation step), ``epoch`` (an epoch
+            ended and was validated) or ``calibrate`` (training ended, scoring validation scenes).
+        step: optimisation steps done.
+        total_steps: steps planned (``epochs * steps_per_epoch``).
+        epoch: epochs done (fractional within an epoch).
+        time_s: optimisation wall time so far (loading and validation excluded).
+        loss: the step's training loss (``step``), or None.
+        val_accuracy: scene-level validation accuracy (``epoch``), or None.
+        loaded: scenes read so far and ``total`` to read (``load``).
+    """
+
+    stage: str
+    step: int = 0
+    total_steps: int = 0
+    epoch: float = 0.0
+    time_s: float = 0.0
+    loss: float | None = None
+    val_accuracy: float | None = None
+    loaded: int = 0
+    total: int = 0
+
+
+Callback = Callable[[TrainEvent], None]
+
+
+@dataclass(frozen=True)
+class Splits:
+    """The scenes each stage uses."""
+
+    categories: tuple[str, ...]
+    """Known categories, in class order."""
+    train: tuple[SceneRecord, ...]
+    """Training scenes of the known categories."""
+    val: tuple[SceneRecord, ...]
+    """Validation scenes of the known categories (calibration)."""
+    holdout_val: tuple[SceneRecord, ...]
+    """Validation scenes of the held-out categories (reported only)."""
+
+
+def plan_splits(collection: Collection, holdout: Sequence[str]) -> Splits:
+    """Known categories and the scenes of each stage; ConfigError when a stage would be empty."""
+    present = list(dict.fromkeys(str(c) for c in collection.config.get("categories", ())))
+    for record in collection.scenes:
+        if record.category not in present:
+            present.append(record.category)
+    missing = [c for c in holdout if c not in present]
+    if missing:
+        raise ConfigError(f"--holdout-categories {','.join(missing)}: not in the collection (it has {', '.join(present)})")
+    known = tuple(c for c in present if c not in holdout)
+    if len(known) < 2:
+        raise ConfigError(f"{len(known)} known categor{'y' if len(known) == 1 else 'ies'} left after --holdout-categories; need at least 2")
+    train = tuple(r for r in collection.scenes if r.split == "train" and r.category in known)
+    val = tuple(r for r in collection.scenes if r.split == "val" and r.category in known)
+    for category in known:
+        if not any(r.category == category for r in train):
+            raise ConfigError(f"{collection.root}: category {category!r} has no 'train' scene")
+    if not val:
+        raise ConfigError(
+            f"{collection.root}: no 'val' scenes of the known categories to calibrate the unknown threshold on; "
+            "generate the collection with --val-fraction > 0 and enough scenes per category"
+        )
+    holdout_val = tuple(r for r in collection.scenes if r.split == "val" and r.category in holdout)
+    return Splits(known, train, val, holdout_val)
+
+
+def lr_factor(progress: float, warmup: float) -> float:
+    """One-cycle schedule: linear warm-up over ``warmup`` of the run, then cosine decay to 0.
+
+    Args:
+        progress: fraction of the run done, in [0, 1].
+        warmup: fraction of the run spent warming up, in [0, 1).
+    """
+    progress = min(max(progress, 0.0), 1.0)
+    if progress < warmup:
+        return (progress + 1e-3) / (warmup + 1e-3)
+    return 0.5 * (1.0 + math.cos(math.pi * (progress - warmup) / (1.0 - warmup)))
+
+
+@torch.no_grad()
+def scene_outputs(model: SceneNet, views: ViewSet, meta: ClassifierMeta) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per scene of ``views``: (features (n_views, dim), logits (n_views, n_classes)), no augmentation."""
+    inputs = model_inputs(views.float_views(slice(None)), meta)
+    features, logits = view_outputs(model, inputs)
+    return [(features[idx], logits[idx]) for idx in (views.scene_views(k) for k in range(len(views.scenes)))]
+
+
+def scene_accuracy(outputs: list[tuple[torch.Tensor, torch.Tensor]], views: ViewSet) -> float:
+    """Fraction of scenes whose view-averaged probabilities pick their own category."""
+    labels = [int(views.labels[views.scene_views(k)[0]]) for k in range(len(outputs))]
+    hits = [int(scene_probabilities(z).argmax()) == y for (_, z), y in zip(outputs, labels)]
+    return sum(hits) / max(1, len(hits))
+
+
+def _meta(config: TrainConfig, categories: tuple[str, ...], score: str = "msp", thresholds: dict | None = None) -> ClassifierMeta:
+    thresholds = thresholds or {}
+    return ClassifierMeta(
+        categories=categories, arch=config.arch, stem=config.stem,
+        input_size=config.input_size, background=config.background, mean=config.mean, std=config.std,
+        score=score, threshold=float(thresholds.get(score, 0.0)), thresholds=dict(thresholds),
+    )
+
+
+def fit_network(
+    model: SceneNet,
+    train: ViewSet,
+    val: ViewSet,
+    config: TrainConfig,
+    callbacks: Sequence[Callback] = (),
+) -> dict[str, Any]:
+    """Optimise ``model`` on augmented training views; validate on ``val`` after every epoch.
+
+    The validation after each epoch uses the first ``config.monitor_views`` views of each scene
+    (a cheap monitor for the curve); ``time_s`` and the time budget count it.
+
+    Returns:
+        history: ``step_loss`` (per step), ``step_time_s``, ``epochs`` (one record per epoch with
+        ``epoch``, ``step``, ``time_s``, ``train_loss``, ``val_scene_accuracy``, ``val_view_accuracy``),
+        ``steps``, ``time_s`` and ``stop_reason``.
+    """
+    device = torch.device(config.device)
+    model.to(device).train()
+    generator = torch.Generator().manual_seed(config.seed)
+    meta = _meta(config, tuple(str(i) for i in range(model.num_classes)))
+    decay, no_decay = [], []
+    for name, p in model.named_parameters():
+        (no_decay if p.dim() == 1 else decay).append(p)
+    optimizer = torch.optim.AdamW(
+        [{"params": decay, "weight_decay": config.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+        lr=config.lr,
+        fused=device.type in ("cpu", "cuda"),  # one kernel for all parameters: much faster on CPU too
+    )
+    n = len(train)
+    steps_per_epoch = max(1, n // config.batch_size)  # drop the last partial batch (BatchNorm)
+    total = steps_per_epoch * config.epochs
+    history: dict[str, Any] = {"step_loss": [], "step_time_s": [], "epochs": [], "steps_per_epoch": steps_per_epoch}
+    monitor = val.subset(config.monitor_views)
+    step, elapsed, stop = 0, 0.0, "epochs"
+    t0 = time.perf_counter()
+    for epoch in range(config.epochs):
+        order = torch.randperm(n, generator=generator)
+        losses = []
+        for b in range(steps_per_epoch):
+            progress = step / total
+            if config.time_budget_s:
+                progress = max(progress, elapsed / config.time_budget_s)
+            for group in optimizer.param_groups:
+                group["lr"] = config.lr * lr_factor(progress, config.warmup_fraction)
+            idx = order[b * config.batch_size : (b + 1) * config.batch_size]
+            rgb = augment_views(train.float_views(idx), config.augment, config.background, generator)
+            inputs = normalize(rgb, config.mean, config.std).to(device)
+            _, logits = model(inputs)
+            loss = F.cross_entropy(logits, train.labels[idx].to(device))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            elapsed = time.perf_counter() - t0  # validation included: the budget bounds wall time
+            step += 1
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise ConfigError(f"training diverged at step {step} (loss {value}); lower --lr")
+            losses.append(value)
+            history["step_loss"].append(value)
+            history["step_time_s"].append(elapsed)
+            for cb in callbacks:
+                cb(TrainEvent("step", step, total, epoch + (b + 1) / steps_per_epoch, elapsed, loss=value))
+            if config.time_budget_s and elapsed >= config.time_budget_s:
+                stop = "time budget"
+                break
+        outputs = scene_outputs(model, monitor, meta)
+        logits = torch.cat([z for _, z in outputs])
+        labels = torch.cat([monitor.labels[monitor.scene_views(k)] for k in range(len(outputs))])
+        record = {
+            "epoch": epoch + len(losses) / steps_per_epoch,
+            "step": step,
+            "time_s": elapsed,
+            "train_loss": sum(losses) / max(1, len(losses)),
+            "val_loss": float(F.cross_entropy(logits, labels)),
+            "val_scene_accuracy": scene_accuracy(outputs, monitor),
+            "val_view_accuracy": float((logits.argmax(-1) == labels).float().mean()),
+        }
+        history["epochs"].append(record)
+        elapsed = time.perf_counter() - t0
+        log.info("epoch %.2f: loss %.4f, val scene accuracy %.3f", record["epoch"], record["train_loss"], record["val_scene_accuracy"])
+        for cb in callbacks:
+            cb(TrainEvent("epoch", step, total, record["epoch"], elapsed, loss=record["train_loss"],
+                          val_accuracy=record["val_scene_accuracy"]))
+        if stop != "epochs":
+            break
+    model.eval()
+    history.update(steps=step, time_s=elapsed, stop_reason=stop)
+    return history
+
+
+def score_table(outputs: list[tuple[torch.Tensor, torch.Tensor]], stats: FeatureStats) -> dict[str, torch.Tensor]:
+    """Score name -> (n_scenes,) scores of each scene."""
+    rows = [scene_scores(z, f, stats) for f, z in outputs]
+    return {name: torch.tensor([r[name] for r in rows], dtype=torch.float64) for name in SCORES}
+
+
+def calibrate(
+    model: SceneNet,
+    train: ViewSet,
+    val: ViewSet,
+    holdout_val: ViewSet,
+    config: TrainConfig,
+    categories: tuple[str, ...],
+) -> tuple[FeatureStats, dict[str, float], dict[str, Any]]:
+    """Feature statistics of the training scenes, a threshold per score, and validation metrics.
+
+    The statistics use the first ``config.stats_views`` views of each training scene, not augmented.
+
+    Returns:
+        stats, thresholds (score -> threshold keeping ``config.keep_fraction`` of ``val``), metrics.
+    """
+    meta = _meta(config, categories)
+    sample = train.subset(config.stats_views)
+    train_features, _ = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta))
+    stats = fit_feature_stats(train_features, sample.labels, sample.scene_index, len(categories), config.covariance_shrinkage)
+    val_out = scene_outputs(model, val, meta)
+    known = score_table(val_out, stats)
+    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction) for name in SCORES}
+    labels = [int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))]
+    correct = torch.tensor([int(scene_probabilities(z).argmax()) == y for (_, z), y in zip(val_out, labels)])
+    metrics: dict[str, Any] = {
+        "val_scenes": len(val.scenes),
+        "val_views": len(val),
+        "val_scene_accuracy": float(correct.float().mean()),
+        "scores": {},
+    }
+    held = score_table(scene_outputs(model, holdout_val, meta), stats) if len(holdout_val.scenes) else None
+    metrics["holdout_val_scenes"] = len(holdout_val.scenes)
+    for name in SCORES:
+        flagged = known[name] < thresholds[name]
+        entry = {
+            "threshold": thresholds[name],
+            "val_false_unknown_rate": float(flagged.double().mean()),
+            "val_correct_and_known": float((correct & ~flagged).double().mean()),
+        }
+        if held is not None:
+            entry["holdout_val_detection_rate"] = float((held[name] < thresholds[name]).double().mean())
+            entry["holdout_val_auroc"] = auroc(known[name], held[name])
+        metrics["scores"][name] = entry
+    return stats, thresholds, metrics
+
+
+def train_classifier(
+    config: TrainConfig,
+    collection_path: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    overwrite: bool = False,
+    callbacks: Sequence[Callback] = (),
+) -> dict[str, Any]:
+    """Train, calibrate and write a classifier folder (see :mod:`classifier.store` for the files).
+
+    Args:
+        config: the recipe (validated first; nothing is written if it is invalid).
+        collection_path: a collection folder or its ``collection.json``.
+        out: the classifier folder; must be absent or empty, or an earlier classifier with ``overwrite``.
+        callbacks: progress callbacks (see :class:`TrainEvent`).
+
+    Returns:
+        the ``classifier.json`` document written.
+    """
+    config.validate()
+    out = Path(os.path.abspath(out))
+    check_output(out, overwrite)
+    wall_start = time.perf_counter()
+    collection = load_collection(collection_path)
+    splits = plan_splits(collection, config.holdout_categories)
+    model = build_model(config.arch, len(splits.categories), stem=config.stem, seed=config.seed)
+    fresh = load_pretrained(model, config.weights) if config.weights else None
+
+    total = len(splits.train) + len(splits.val) + len(splits.holdout_val)
+    loaded = [0]
+
+    def progress(record: SceneRecord) -> None:
+        loaded[0] += 1
+        for cb in callbacks:
+            cb(TrainEvent("load", loaded=loaded[0], total=total))
+
+    kwargs = dict(size=config.input_size, background=config.background, progress=progress)
+    train = load_view_set(collection, splits.train, splits.categories, **kwargs)
+    val = load_view_set(collection, splits.val, splits.categories, **kwargs)
+    holdout_val = load_view_set(collection, splits.holdout_val, splits.categories, **kwargs)
+    load_s = time.perf_counter() - wall_start
+
+    history = fit_network(model, train, val, config, callbacks)
+    for cb in callbacks:
+        cb(TrainEvent("calibrate", history["steps"], history["steps"], time_s=history["time_s"]))
+    model.cpu()
+    stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories)
+    meta = _meta(config, splits.categories, config.score, thresholds)
+    wall_s = time.perf_counter() - wall_start
+
+    extra = {
+        "holdout_categories": list(config.holdout_categories),
+        "recipe": to_jsonable(config),
+        "training": {
+            "collection": str(collection.root),
+            "train_scenes": len(splits.train),
+            "train_views": len(train),
+            "val_scenes": len(splits.val),
+            "steps": history["steps"],
+            "epochs_done": history["epochs"][-1]["epoch"] if history["epochs"] else 0.0,
+            "stop_reason": history["stop_reason"],
+            "optimisation_time_s": round(history["time_s"], 2),
+            "load_time_s": round(load_s, 2),
+            "wall_time_s": round(wall_s, 2),
+            "pretrained_weights": config.weights,
+            "fresh_parameters": fresh,
+            "torch_threads": torch.get_num_threads(),
+        },
+        "validation": metrics,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    trash = out.parent / f".{out.name}.old-{os.getpid()}"
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        save_classifier(tmp, Classifier(meta, model, stats), extra)
+        write_json(tmp / HISTORY_FILE, history)
+        plot_training_curve(history, tmp / CURVE_FILE, title=f"{config.arch}, {len(splits.categories)} categories")
+        if out.exists():
+            os.replace(out, trash)
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(trash, ignore_errors=True)
+    return json.loads((out / META_FILE).read_text())
+
+
+def check_output(out: Path, overwrite: bool) -> None:
+    """Raise :class:`ConfigError` if ``out`` cannot become a classifier folder."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out} exists and is not a folder; choose another --out")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise ConfigError(f"{out} exists and is not empty; pass --overwrite to replace it")
+        if not (out / META_FILE).is_file():
+            raise ConfigError(f"{out} is not empty and holds no classifier.json; --overwrite only replaces a classifier")

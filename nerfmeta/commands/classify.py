@@ -1,0 +1,45 @@
+"""``nerfmeta classify``: name a scene's category, or answer that it is unknown, as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "classify",
+        help="classify a scene (or images) with a trained classifier; prints JSON",
+        description=(
+            "Classify SCENE from all of its views (every split): softmax per view, averaged over the views, "
+            "plus the unknown-category decision calibrated when the classifier was trained. SCENE is a scene "
+            "folder in any supported format, a folder of PNG/JPEG images, or one image; any size, RGB or RGBA "
+            "(composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
+            '{"category", "confidence", "unknown", "probabilities", "views", "score"} on stdout.'
+        ),
+    )
+    p.add_argument("scene", metavar="SCENE", help="scene folder, .npz scene, image folder or image file")
+    p.add_argument("--classifier", default=None, metavar="DIR", help="classifier folder from 'nerfmeta classifier train' (required until a model zoo exists)")
+    p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON to FILE (atomically)")
+    p.add_argument("--score", default=None, metavar="NAME", help="decide with another calibrated score (msp, energy, mahalanobis)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from classifier.inputs import read_scene_views
+    from classifier.store import classify_views, load_classifier
+    from nerfmeta.io import write_json
+
+    classifier = load_classifier(args.classifier, device=args.device)
+    if args.score is not None:
+        classifier = classifier.with_score(args.score)
+    meta = classifier.meta
+    views = read_scene_views(args.scene, size=meta.input_size, background=meta.background)
+    doc = classify_views(classifier, views).to_json()
+    if args.json_out:
+        write_json(args.json_out, doc)
+    json.dump(doc, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return 0

@@ -1,0 +1,151 @@
+"""classifier.store: save/load round trip gives identical predictions; bad folders are one-line errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from classifier.model import build_model, load_pretrained
+from classifier.predict import FeatureStats
+from classifier.store import (
+    META_FILE,
+    WEIGHTS_FILE,
+    Classifier,
+    ClassifierError,
+    ClassifierMeta,
+    classify_views,
+    load_classifier,
+    save_classifier,
+)
+from nerfmeta.errors import ConfigError, NerfmetaError
+
+torch.set_num_threads(1)
+CATS = ("chair", "mug", "table")
+
+
+def _classifier(seed: int = 0) -> Classifier:
+    model = build_model("resnet18", len(CATS), seed=seed).eval()
+    g = torch.Generator().manual_seed(seed)
+    dim = model.feature_dim
+    stats = FeatureStats(torch.randn(len(CATS), dim, generator=g), torch.eye(dim) * 0.5, torch.eye(dim) * 2.0)
+    meta = ClassifierMeta(
+        categories=CATS, arch="resnet18", stem="imagenet", input_size=16, background=(1.0, 1.0, 1.0),
+        mean=(0.5, 0.5, 0.5), std=(0.25, 0.25, 0.25), score="mahalanobis", threshold=-100.0,
+        thresholds={"msp": 0.5, "energy": 1.0, "mahalanobis": -100.0},
+    )
+    return Classifier(meta, model, stats)
+
+
+def _views(n: int = 5) -> torch.Tensor:
+    g = torch.Generator().manual_seed(1)
+    rgba = torch.rand(n, 4, 16, 16, generator=g)
+    rgba[:, :3] *= rgba[:, 3:4]  # premultiplied
+    return rgba
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("store") / "clf"
+    save_classifier(folder, _classifier(), {"note": "test"})
+    return folder
+
+
+@pytest.fixture()
+def saved(template: Path, tmp_path: Path) -> Path:
+    """A fresh copy of the saved classifier that a test may damage."""
+    return Path(shutil.copytree(template, tmp_path / "clf"))
+
+
+def test_save_then_load_gives_identical_predictions(saved: Path):
+    original = classify_views(_classifier(), _views())
+    loaded = load_classifier(saved)
+    again = classify_views(loaded, _views())
+    assert again == original  # every field, probabilities and score bit for bit
+    doc = json.loads((saved / META_FILE).read_text())
+    assert doc["categories"] == list(CATS) and doc["input"]["size"] == 16 and doc["note"] == "test"
+    assert len(doc["weights"]["sha256"]) == 64
+
+
+def test_build_model_is_a_function_of_the_seed_and_leaves_global_rng_alone():
+    state = torch.get_rng_state()
+    a, b, c = build_model("resnet18", 3, seed=0), build_model("resnet18", 3, seed=0), build_model("resnet18", 3, seed=1)
+    assert torch.equal(torch.get_rng_state(), state)
+    assert torch.equal(a.net.conv1.weight, b.net.conv1.weight)
+    assert not torch.equal(a.net.conv1.weight, c.net.conv1.weight)
+
+
+def test_with_score_switches_to_another_calibrated_threshold(saved: Path):
+    clf = load_classifier(saved).with_score("msp")
+    assert clf.meta.score == "msp" and clf.meta.threshold == 0.5
+    assert classify_views(clf, _views()).score_name == "msp"
+
+
+def test_missing_classifier_option_says_what_to_pass():
+    with pytest.raises(ClassifierError, match="--classifier DIR") as err:
+        load_classifier(None)
+    assert "model zoo" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda f: shutil.rmtree(f), "not found"),
+        (lambda f: (f / META_FILE).unlink(), "classifier.json: file missing"),
+        (lambda f: (f / WEIGHTS_FILE).unlink(), "weights file missing"),
+        (lambda f: (f / META_FILE).write_text("{not json"), "invalid JSON"),
+        (lambda f: (f / META_FILE).write_text('{"format": "other"}'), "not a nerfmeta classifier"),
+        (lambda f: _edit(f, lambda d: d.pop("categories")), "missing or malformed"),
+        (lambda f: _edit(f, lambda d: d["unknown"].update(score="best")), "unknown score"),
+        (lambda f: _truncate(f / WEIGHTS_FILE), "SHA-256"),
+        (lambda f: _edit(f, lambda d: d["weights"].update(sha256="0" * 64)), "SHA-256"),
+        (lambda f: _edit(f, lambda d: d.update(categories=["chair", "mug"])), "do not fit a resnet18 with 2 categories"),
+    ],
+)
+def test_damaged_folder_is_a_one_line_error(saved: Path, damage, message):
+    damage(saved)
+    with pytest.raises(ClassifierError, match=message) as err:
+        load_classifier(saved)
+    assert isinstance(err.value, NerfmetaError) and "\n" not in str(err.value)
+
+
+def test_corrupted_weights_with_matching_hash_are_still_an_error(saved: Path):
+    _truncate(saved / WEIGHTS_FILE)
+    _edit(saved, lambda d: d["weights"].update(sha256=_sha(saved / WEIGHTS_FILE)))
+    with pytest.raises(ClassifierError, match="cannot read as safetensors"):
+        load_classifier(saved)
+
+
+def test_load_pretrained_skips_fc_and_accepts_torchvision_keys(tmp_path: Path):
+    donor = build_model("resnet18", 10, seed=5)
+    path = tmp_path / "resnet18.pth"
+    torch.save(donor.net.state_dict(), path)  # plain torchvision keys, 10-class fc
+    model = build_model("resnet18", 3, seed=0)
+    fresh = load_pretrained(model, path)
+    assert torch.equal(model.net.layer1[0].conv1.weight, donor.net.layer1[0].conv1.weight)
+    assert fresh == ["fc.bias", "fc.weight"]
+    with pytest.raises(ConfigError, match="not found"):
+        load_pretrained(model, tmp_path / "none.pth")
+    (tmp_path / "junk.pth").write_bytes(b"junk")
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_pretrained(model, tmp_path / "junk.pth")
+
+
+def _edit(folder: Path, change) -> None:
+    doc = json.loads((folder / META_FILE).read_text())
+    change(doc)
+    (folder / META_FILE).write_text(json.dumps(doc))
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _sha(path: Path) -> str:
+    from nerfmeta.io import sha256_file
+
+    return sha256_file(path)
