@@ -106,8 +106,9 @@ def subsection_text(runs: list[dict], args: argparse.Namespace) -> str:
         cmd.replace("LEGO", "../shared/data/nerf_synthetic/lego").replace("RUN", "RUN_K"),
         "```",
         "",
-        f"Machine: {MACHINE}, {os.cpu_count()} CPU cores, torch {torch_version()}; date {datetime.date.today().isoformat()}; "
-        f"{len(runs)} run{'s' if len(runs) != 1 else ''} (seed K = 0..{len(runs) - 1}, one fresh process each).",
+        f"Machine: {MACHINE} (torch {torch_version()}, {torch_threads()} intra-op threads); date "
+        f"{datetime.date.today().isoformat()}; {len(runs)} run{'s' if len(runs) != 1 else ''} "
+        f"({'seed K = 0' if len(runs) == 1 else f'seeds K = 0..{len(runs) - 1}'}, one fresh process each).",
         "",
         "| figure | median | min | max |",
         "|---|---|---|---|",
@@ -126,6 +127,11 @@ def subsection_text(runs: list[dict], args: argparse.Namespace) -> str:
 def torch_version() -> str:
     out = subprocess.run([sys.executable, "-c", "import torch; print(torch.__version__)"], capture_output=True, text=True)
     return out.stdout.strip() or "unknown"
+
+
+def torch_threads() -> str:
+    out = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads())"], capture_output=True, text=True)
+    return out.stdout.strip() or "?"
 
 
 def write_subsection(path: Path, backbone: str, text: str) -> None:

@@ -2,8 +2,10 @@
 dense reference), the initial-alpha shift, layer partition per stage, warm starts across the
 coarse->fine switch and growth, occupancy skipping, checkpoint structure, and a short fit."""
 
+import copy
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -16,7 +18,7 @@ from nerfmeta.fields.grid_ops import (
     corner_indices_weights,
     grid_points,
     interp_cf,
-    interp_cl,
+    interp_gather,
     trilinear_gather,
 )
 from nerfmeta.fields.voxel_grid import (
@@ -25,7 +27,7 @@ from nerfmeta.fields.voxel_grid import (
     march_packed,
     packed_weights,
 )
-from nerfmeta.fit.loop import FitConfig, fit
+from nerfmeta.fit.loop import FitConfig, FitState, fit
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.metrics import mse_to_psnr
 from nerfmeta.render.sampling import fixed_step_samples
@@ -57,11 +59,26 @@ def _model(config=SMALL, bounds=BOX, seed=0):
         return VoxelGrid(config, bounds)
 
 
-def _fit(model, scene, iters, seed=0, batch_rays=512):
-    """``iters`` steps of the fit loop on ``scene`` (LR decay over a long horizon, no evaluation)."""
-    config = FitConfig(iters=iters, batch_rays=batch_rays, eval_every=0, seed=seed, lr_decay=1.0)
+def _fit(model, scene, iters, start=0, batch_rays=512):
+    """Steps ``start`` .. ``iters - 1`` of the fit loop on ``scene`` (constant LR, no evaluation)."""
+    config = FitConfig(iters=iters, batch_rays=batch_rays, eval_every=0, seed=start, lr_decay=1.0)
     scene = dataclasses.replace(scene, splits={"train": scene.splits["train"]})
-    fit(model, scene, config, background=WHITE)
+    fit(model, scene, config, background=WHITE, state=FitState(step=start))
+
+
+@pytest.fixture(scope="module")
+def stages(scene):
+    """One SMALL model fitted through its schedule, copied at the end of the coarse stage (step 40),
+    just before the growth step (step 60) and after 100 steps; plus the untrained model."""
+    model = _model(bounds=scene.bounds)
+    untrained = copy.deepcopy(model)
+    _fit(model, scene, SMALL.coarse_iters)
+    coarse = copy.deepcopy(model)
+    grow_at = SMALL.coarse_iters + SMALL.growth_steps[0]
+    _fit(model, scene, grow_at, start=SMALL.coarse_iters)
+    before_growth = copy.deepcopy(model)
+    _fit(model, scene, 100, start=grow_at)
+    return SimpleNamespace(untrained=untrained, coarse=coarse, before_growth=before_growth, final=model, grow_at=grow_at)
 
 
 def _render(model, rays):
@@ -84,7 +101,7 @@ def _test_view(scene, k=0):
 def test_trilinear_gather_gradcheck_float64(channels):
     g = torch.Generator().manual_seed(0)
     size = (3, 4, 5)
-    grid = torch.randn(60, channels, generator=g, dtype=torch.float64, requires_grad=True)
+    grid = torch.randn(channels, 60, generator=g, dtype=torch.float64, requires_grad=True)
     points = torch.rand(7, 3, generator=g, dtype=torch.float64) * 2 - 1
     idx, w = corner_indices_weights(points, BOX.double(), size)
     torch.autograd.gradcheck(lambda v: trilinear_gather(v, idx, w), (grid,))
@@ -94,13 +111,12 @@ def test_trilinear_gather_gradcheck_float64(channels):
 def test_trilinear_gather_matches_grid_sample_and_hits_corners_exactly():
     g = torch.Generator().manual_seed(1)
     size = (4, 5, 6)
-    grid_cf = torch.randn(3, *size, generator=g, dtype=torch.float64)
-    grid_cl = grid_cf.reshape(3, -1).t().contiguous()
+    grid = torch.randn(3, *size, generator=g, dtype=torch.float64)
     points = torch.rand(50, 3, generator=g, dtype=torch.float64) * 2.4 - 1.2  # some outside: clamped
     box = BOX.double()
-    torch.testing.assert_close(interp_cl(grid_cl, points, box, size), interp_cf(grid_cf, points, box))
+    torch.testing.assert_close(interp_gather(grid, points, box), interp_cf(grid, points, box))
     corners = grid_points(box, size).reshape(-1, 3)
-    torch.testing.assert_close(interp_cl(grid_cl, corners, box, size), grid_cl, rtol=0, atol=1e-12)
+    torch.testing.assert_close(interp_gather(grid, corners, box), grid.reshape(3, -1).t(), rtol=0, atol=1e-12)
     idx, w = corner_indices_weights(points, box, size)
     assert idx.shape == w.shape == (8, 50)
     assert (w >= 0).all() and torch.allclose(w.sum(0), torch.ones(50, dtype=torch.float64))
@@ -199,9 +215,9 @@ def test_raw_zero_gives_alpha_init_per_step(stage):
     assert out.acc.item() == pytest.approx(1 - (1 - alpha) ** steps, rel=1e-5)
 
 
-def test_coarse_to_fine_switch_keeps_the_render(scene):
-    model = _model(bounds=scene.bounds)
-    _fit(model, scene, SMALL.coarse_iters)
+def test_coarse_to_fine_switch_keeps_the_render(scene, stages):
+    model = copy.deepcopy(stages.coarse)
+    assert model.stage == "coarse"
     rays = _test_view(scene)
     before = _render(model, rays)
     assert _psnr(before.rgb, rays.target) > 14.0  # the coarse stage learnt something
@@ -211,13 +227,12 @@ def test_coarse_to_fine_switch_keeps_the_render(scene):
     assert _psnr(after.rgb, before.rgb) > 30.0, _psnr(after.rgb, before.rgb)
 
 
-def test_growth_keeps_the_render(scene):
-    model = _model(bounds=scene.bounds)
-    _fit(model, scene, SMALL.coarse_iters + SMALL.growth_steps[0])
+def test_growth_keeps_the_render(scene, stages):
+    model = copy.deepcopy(stages.before_growth)
     rays = _test_view(scene)
     before = _render(model, rays)
     size = model.size
-    event = model.begin_step(SMALL.coarse_iters + SMALL.growth_steps[0], None)
+    event = model.begin_step(stages.grow_at, None)
     assert event.params_changed and math.prod(model.size) > math.prod(size)
     after = _render(model, rays)
     assert _psnr(after.rgb, before.rgb) > 30.0, _psnr(after.rgb, before.rgb)
@@ -263,23 +278,9 @@ def test_occupancy_skipping_renders_the_same_with_fewer_samples():
     torch.testing.assert_close(other.rgb, full.rgb, rtol=0, atol=1e-6)
 
 
-def test_early_stop_changes_training_render_by_at_most_eps():
-    model, _ = _ball_model()
-    rays = _rays()
-    gen = lambda: torch.Generator().manual_seed(5)  # noqa: E731 - the same jitter for both
-    with torch.enable_grad():
-        stopped = model(rays, background=WHITE, train=True, generator=gen())
-    off = dataclasses.replace(model.config, early_stop_eps=0.0)
-    model.config = off
-    with torch.enable_grad():
-        full = model(rays, background=WHITE, train=True, generator=gen())
-    torch.testing.assert_close(stopped.rgb, full.rgb, rtol=0, atol=2e-4)
-
-
-@pytest.mark.parametrize("iters", [20, 55])  # coarse stage; fine stage after a growth step
-def test_structure_round_trip_restores_identical_renders(scene, iters):
-    model = _model(bounds=scene.bounds)
-    _fit(model, scene, iters)
+@pytest.mark.parametrize("stage", ["coarse", "final"])  # coarse stage; fine stage after a growth step
+def test_structure_round_trip_restores_identical_renders(scene, stages, stage):
+    model = getattr(stages, stage)
     structure, state = model.structure(), model.state_dict()
     # Rebuilt elsewhere (placeholder bounds, as saved initialisations are), then reshaped.
     other = _model(bounds=BOX * 3, seed=1)
@@ -291,12 +292,35 @@ def test_structure_round_trip_restores_identical_renders(scene, iters):
     assert torch.equal(a.rgb, b.rgb) and a.samples_evaluated == b.samples_evaluated
 
 
-@pytest.mark.parametrize("overrides", [{}, {"view_dependent": False}, {"empty_space_skipping": False}])
-def test_short_fit_raises_psnr(scene, overrides):
-    model = _model(dataclasses.replace(SMALL, **overrides), bounds=scene.bounds)
+@pytest.mark.parametrize("overrides", [None, {"view_dependent": False}, {"empty_space_skipping": False}])
+def test_short_fit_raises_psnr(scene, stages, overrides):
+    if overrides is None:  # the defaults: the fixture's model
+        start, model = stages.untrained, stages.final
+    else:
+        model = _model(dataclasses.replace(SMALL, **overrides), bounds=scene.bounds)
+        start = copy.deepcopy(model)
+        _fit(model, scene, 100)
     rays = _test_view(scene)
-    start = _psnr(_render(model, rays).rgb, rays.target)
-    _fit(model, scene, 100)
-    end = _psnr(_render(model, rays).rgb, rays.target)
-    assert model.stage == "fine"
-    assert end > start + 8.0, (start, end)
+    before = _psnr(_render(start, rays).rgb, rays.target)
+    after = _psnr(_render(model, rays).rgb, rays.target)
+    assert model.stage == "fine" and model.level == 1
+    assert after > before + 8.0, (before, after)
+
+
+def test_state_saved_channels_last_still_loads(stages):
+    """Grids saved as flat (X*Y*Z, C) rows, as before they were stored channels-first, load the same."""
+    model = stages.final
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    state["features"] = state["features"].reshape(state["features"].shape[0], -1).t().contiguous()
+    other = copy.deepcopy(model)
+    with torch.no_grad():
+        other.features.zero_()
+    other.load_state_dict(state)
+    assert torch.equal(other.features, model.features)
+
+
+def test_growth_keeps_frozen_grids_frozen(stages):
+    model = copy.deepcopy(stages.before_growth)
+    model.freeze_first(1)
+    model.begin_step(stages.grow_at, None)
+    assert not model.density.requires_grad and model.features.requires_grad

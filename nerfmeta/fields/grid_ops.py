@@ -1,23 +1,21 @@
 """Dense voxel-grid operations (pure functions).
 
-Grids are stored like DirectVoxGO's: a value per voxel corner over an axis-aligned box
-``bounds`` (2, 3), corner ``(i, j, k)`` at ``bounds[0] + (i, j, k) * (bounds[1] - bounds[0]) / (size - 1)``.
-Two layouts:
-
-- channels-first ``(C, X, Y, Z)``: :func:`interp_cf` (``grid_sample``), :func:`resample_cf`,
-  :func:`total_variation`; used for whole-grid work (resampling, alpha of every voxel);
-- flat channels-last ``(X*Y*Z, C)``, flattened in ``(x, y, z)`` order: :func:`corner_indices_weights`
-  + :func:`trilinear_gather`, used on the training path. A ``(1, X, Y, Z)`` grid *is* a
-  ``(X*Y*Z, 1)`` flat grid (``grid.view(-1, 1)``), so a one-channel density grid serves both.
+Grids are stored like DirectVoxGO's: channels-first ``(C, X, Y, Z)``, a value per voxel corner
+over an axis-aligned box ``bounds`` (2, 3), corner ``(i, j, k)`` at
+``bounds[0] + (i, j, k) * (bounds[1] - bounds[0]) / (size - 1)``. Whole-grid work (resampling,
+the alpha of every voxel) uses ``grid_sample``/``interpolate`` (:func:`interp_cf`,
+:func:`resample_cf`); the training path uses :func:`corner_indices_weights` and
+:func:`trilinear_gather` on the flat view ``grid.view(C, -1)`` (flattened in ``(x, y, z)`` order).
 
 Per-point data on the training path is *component-major*: coordinates (3, N), corner indices and
-weights (8, N), so every elementwise step runs over long contiguous rows. :func:`trilinear_gather`
-is a custom autograd function: the forward is a flat gather (one channel) or one
-``embedding_bag`` (several), and the backward plain ``index_add_`` scatters of the weighted output
-gradients into the grid, one per channel. PyTorch's own backwards for this (``embedding_bag``'s
-sorts its indices, ``grid_sample``'s also computes the gradient of the sample positions) cost two
-to four times more on a CPU. The corner indices and weights are computed once per point and
-shared by every grid of the same size. Points outside the box are clamped to its faces.
+weights (8, N), values (C, N), so every elementwise step runs over long contiguous rows.
+:func:`trilinear_gather` is a custom autograd function: one flat gather per channel forward, and
+plain ``index_add_`` scatters of the weighted output gradients backward, one per channel.
+PyTorch's own backwards for this (``embedding_bag``'s sorts its indices, ``grid_sample``'s also
+computes the gradient of the sample positions, a row scatter into a channels-last grid misses
+the cache on every row) cost two to four times more on a CPU. The corner indices and weights are
+computed once per point and shared by every grid of the same size. Points outside the box are
+clamped to its faces.
 """
 
 from __future__ import annotations
@@ -34,7 +32,7 @@ __all__ = [
     "grid_coords",
     "grid_points",
     "interp_cf",
-    "interp_cl",
+    "interp_gather",
     "nearest_from_coords",
     "nearest_index",
     "nearest_lookup",
@@ -123,7 +121,7 @@ def corner_indices_weights(
         size: (X, Y, Z) corners per axis, each >= 2.
 
     Returns:
-        indices (8, N) int64 into a flat ``(X*Y*Z, C)`` grid, corners in ``(dx, dy, dz)`` order
+        indices (8, N) int64 into a flat ``(C, X*Y*Z)`` grid, corners in ``(dx, dy, dz)`` order
         ``000, 001, 010, 011, 100, ...``; weights (8, N) in the points' dtype, non-negative and
         summing to 1 over the corners. No gradient flows to ``points``.
     """
@@ -131,16 +129,14 @@ def corner_indices_weights(
 
 
 class _TrilinearGather(torch.autograd.Function):
-    """``out[n] = sum_k w[k, n] * grid[idx[k, n]]`` with ``index_add_`` backwards (grid only)."""
+    """``out[c, n] = sum_k w[k, n] * grid[c, idx[k, n]]`` with ``index_add_`` backwards (grid only)."""
 
     @staticmethod
     def forward(ctx, grid: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         ctx.save_for_backward(idx, w)
-        ctx.rows = grid.shape[0]
-        if grid.shape[1] == 1:  # one channel: a flat gather, corner-major, beats embedding_bag
-            values = grid.view(-1).index_select(0, idx.view(-1)).view(idx.shape)
-            return (values * w).sum(0).unsqueeze(1)
-        return F.embedding_bag(idx.t().contiguous(), grid, per_sample_weights=w.t().contiguous(), mode="sum")
+        ctx.voxels = grid.shape[1]
+        flat = idx.reshape(-1)
+        return torch.stack([(row.index_select(0, flat).view(idx.shape) * w).sum(0) for row in grid])
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
@@ -149,50 +145,44 @@ class _TrilinearGather(torch.autograd.Function):
             return None, None, None
         # Differentiable ops only (the zeros take no gradient), so double backward works too.
         flat = idx.reshape(-1)
-        channels = grad_out.shape[1]
-        if channels == 1:
-            grad = grad_out.new_zeros(ctx.rows).index_add_(0, flat, (w * grad_out.view(1, -1)).reshape(-1))
-            return grad.view(ctx.rows, 1), None, None
-        # One 1-D scatter per channel: on a CPU far faster than a scatter of short rows.
-        src = w[None] * grad_out.t().contiguous()[:, None, :]  # (C, 8, N)
-        grad = grad_out.new_zeros(channels, ctx.rows)
-        for c in range(channels):
-            grad[c].index_add_(0, flat, src[c].reshape(-1))
-        return grad.t().contiguous(), None, None
+        grad = grad_out.new_zeros(grad_out.shape[0], ctx.voxels)
+        for c in range(grad_out.shape[0]):  # one 1-D scatter per channel
+            grad[c].index_add_(0, flat, (w * grad_out[c]).reshape(-1))
+        return grad, None, None
+
+
+def trilinear_gather(grid: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Weighted sums of grid values: trilinear interpolation from :func:`corner_indices_weights`.
+
+    Args:
+        grid: (C, V) flat channels-first grid (differentiable), e.g. ``g.view(C, -1)`` of a (C, X, Y, Z) ``g``.
+        idx: (8, N) int64 corner indices, corner-major.
+        w: (8, N) weights, same dtype as ``grid`` (no gradient flows to them).
+
+    Returns:
+        (C, N) ``sum_k w[k] * grid[:, idx[k]]``.
+    """
+    return _TrilinearGather.apply(grid, idx, w.detach())
+
+
+def interp_gather(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation of a (C, X, Y, Z) grid with :func:`trilinear_gather` (the values of :func:`interp_cf`).
+
+    Args:
+        grid: (C, X, Y, Z); points: (N, 3) world points; bounds: (2, 3).
+
+    Returns:
+        (N, C).
+    """
+    size = tuple(grid.shape[1:])
+    idx, w = corner_indices_weights(points, bounds, size)  # type: ignore[arg-type]
+    return trilinear_gather(grid.reshape(grid.shape[0], -1), idx, w.to(grid.dtype)).t()
 
 
 def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
     """``a[:, cols]`` for a component-major (K, N) tensor: row by row, which a CPU does several
     times faster than one ``index_select`` along dimension 1 (int64 above all)."""
     return torch.stack([row.index_select(0, cols) for row in a]) if a.shape[0] else a[:, cols]
-
-
-def trilinear_gather(grid: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Weighted sum of grid rows: trilinear interpolation from :func:`corner_indices_weights`.
-
-    Args:
-        grid: (V, C) flat channels-last grid (differentiable).
-        idx: (8, N) int64 row indices, corner-major.
-        w: (8, N) weights, same dtype as ``grid`` (no gradient flows to them).
-
-    Returns:
-        (N, C) ``sum_k w[k, :, None] * grid[idx[k]]``.
-    """
-    return _TrilinearGather.apply(grid, idx, w.detach())
-
-
-def interp_cl(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
-    """Trilinear interpolation of a flat channels-last grid.
-
-    Args:
-        grid: (X*Y*Z, C) values, flattened in (x, y, z) order.
-        points: (N, 3); bounds: (2, 3); size: (X, Y, Z).
-
-    Returns:
-        (N, C).
-    """
-    idx, w = corner_indices_weights(points, bounds, size)
-    return trilinear_gather(grid, idx, w.to(grid.dtype))
 
 
 def nearest_from_coords(x: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:

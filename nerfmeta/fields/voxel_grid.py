@@ -2,47 +2,44 @@
 
 Two stages, as in DirectVoxGO (Sun et al., CVPR 2022):
 
-1. **Coarse** (``coarse_iters`` steps): a density grid and a direct RGB grid (``sigmoid`` of
-   three logits per voxel) over the scene box. It finds the occupied region: the fine box is the
-   bounding box of voxels whose coarse alpha exceeds ``bbox_thres`` (scaled by
-   ``world_bound_scale``), and the fine stage's occupancy (mask) cache starts as the set of fine
+1. **Coarse** (``coarse_iters`` steps): a density grid and a direct RGB grid (``sigmoid`` of three
+   logits per voxel) over the scene box. It finds the occupied region: the fine box is the
+   bounding box of the voxels whose coarse alpha exceeds ``bbox_thres``, padded by a voxel and
+   scaled by ``world_bound_scale``; the fine stage's occupancy (mask) cache starts as the fine
    voxels whose coarse alpha exceeds ``mask_cache_thres``, dilated by two voxels.
 2. **Fine**: a density grid and a feature grid in the tightened box. Colour is
    ``sigmoid(diffuse + mlp(features, view))`` (DirectVoxGO's non-direct colour head): the feature
    grid holds 3 diffuse logits plus ``feature_dim`` channels that a shallow MLP decodes with the
-   encoded view direction; the MLP's last layer starts at zero. The fine stage is initialised
-   from the coarse one (density converted through world units, diffuse logits copied), so
-   switching stages keeps what the coarse stage learned. The grids grow progressively: they start
-   with ``num_voxels / 2**len(growth_steps)`` voxels and double their count at each of
-   ``growth_steps`` (fine-stage steps), resampled trilinearly. The occupancy cache is pruned
-   every ``occupancy_every`` fine steps (voxels whose alpha fell below ``mask_cache_thres``,
-   dilated by one voxel, stay).
+   encoded view direction; the MLP's last layer starts at zero. The fine stage starts from the
+   coarse one (density converted through world units, diffuse logits copied), so switching stages
+   keeps the picture. The grids grow progressively: ``num_voxels / 2**len(growth_steps)`` voxels
+   at first, doubling at each of ``growth_steps`` (fine-stage steps), resampled trilinearly. The
+   occupancy cache is refreshed every ``occupancy_every`` fine steps: voxels whose alpha fell
+   below ``mask_cache_thres`` (dilated by one voxel) leave it. An optional total-variation loss
+   (``tv_weight``) smooths the fine density.
 
 Density is *post-activated*: the raw grid is interpolated first and only then passed through
 ``softplus(raw + shift)``, which lets a trilinear grid represent sharp surfaces inside a voxel.
-``shift`` is chosen so that raw 0 gives alpha ``alpha_init`` (``coarse_alpha_init``) over one
-step of ``stepsize`` voxels (the shifted softplus of DirectVoxGO). Densities are in units of
-1/``unit`` where ``unit`` is the voxel side of the fully grown grid of the current stage
-(``tau = sigma * delta / unit``), so growing the grid does not change what a raw value means.
+``shift`` is chosen so that raw 0 gives alpha ``alpha_init`` (``coarse_alpha_init``) over one step
+of ``stepsize`` voxels (DirectVoxGO's shifted softplus). Densities are in units of 1/``unit``,
+``unit`` being the voxel side of the fully grown grid of the current stage (``tau = sigma * delta
+/ unit``), so growing the grid does not change what a raw value means.
 
-Rendering marches every ``stepsize`` voxels through the box in a *packed* layout (one flat list
-of samples, sorted by ray, no padding), so its cost follows the samples that exist rather than
-``rays x longest ray``:
+Rendering marches every ``stepsize`` voxels through the box in a *packed* layout: one flat list
+of samples sorted by ray (:func:`march_packed`, :func:`packed_weights`), so the work follows the
+samples that exist, not ``rays x longest ray``. Samples whose nearest occupancy-cache voxel is
+off are dropped before anything is evaluated (``empty_space_skipping``; what remains is
+``RenderOutput.samples_evaluated``), and colour is decoded only where a sample's compositing
+weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in the coarse stage). Grid
+lookups use :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
+computed once per sample, a gather forward and an ``index_add_`` backward.
 
-- empty-space skipping: samples whose nearest occupancy-cache voxel is off are dropped before
-  anything is evaluated (``empty_space_skipping``; the count after this is
-  ``RenderOutput.samples_evaluated``);
-- early ray termination: in training, the densities of the kept samples are first computed
-  without autograd, and samples behind the point where a ray's transmittance falls below
-  ``early_stop_eps`` are dropped before the differentiable pass (their weight is below that);
-- colour is only decoded where a sample's compositing weight exceeds ``fast_color_thres``.
-
-Interpolation on the training path uses :func:`~nerfmeta.fields.grid_ops.trilinear_gather`
-(one shared set of corner indices per sample, an ``index_add_`` backward).
-
-Sizes: ``num_voxels = 0`` and ``coarse_num_voxels = 0`` mean "auto"; :meth:`VoxelGridConfig.for_scene`
-resolves them from the image resolution (see there). The defaults are tuned for NeRF-synthetic
-scenes at 100x100 on a 2-core CPU (lego: about 28 dB in 60 s; see BENCHMARKS.md).
+Defaults: DirectVoxGO's, except where a 60-second budget on a 2-core CPU asked otherwise (each
+measured on lego at 100 x 100, see BENCHMARKS.md): a 100-step coarse stage (DirectVoxGO: 5000)
+with a 3x higher density learning rate, a ``bbox_thres`` of 0.1 (1e-3 after a short coarse stage
+counts faint floaters, doubling the box), a 6-channel feature grid and a 32-wide MLP (12 and 128),
+and colour decoded only above weight 1e-3 (1e-4). ``num_voxels = 0`` and ``coarse_num_voxels =
+0`` mean "auto": :meth:`VoxelGridConfig.for_scene` sizes them from the image resolution.
 """
 
 from __future__ import annotations
@@ -100,9 +97,7 @@ class VoxelGridConfig:
     """Alpha of one fine step at raw density 0."""
     feature_dim: int = 6
     """Channels of the fine feature grid fed to the MLP (3 diffuse-colour channels come on top)."""
-    feature_scale: float = 1.0
-    """Resolution of the fine feature grid relative to the density grid, per axis (1: the same, as DirectVoxGO)."""
-    mlp_width: int = 64
+    mlp_width: int = 32
     """Width of the colour MLP."""
     mlp_depth: int = 3
     """Linear layers in the colour MLP (>= 1)."""
@@ -118,10 +113,8 @@ class VoxelGridConfig:
     """Alpha above which a voxel stays in the occupancy cache."""
     coarse_fast_color_thres: float = 1e-5
     """Coarse samples with a smaller compositing weight are not colour-decoded (DirectVoxGO: a tenth of the initial alpha)."""
-    fast_color_thres: float = 1e-4
+    fast_color_thres: float = 1e-3
     """Fine samples with a smaller compositing weight are not colour-decoded."""
-    early_stop_eps: float = 1e-4
-    """Early ray termination: samples behind the point where a ray's transmittance falls below this are not evaluated (0: off)."""
     empty_space_skipping: bool = True
     """Skip samples in voxels the occupancy cache marks empty (switch off to compare)."""
     occupancy_every: int = 100
@@ -151,12 +144,10 @@ class VoxelGridConfig:
             ("coarse_alpha_init", 0.0 < self.coarse_alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-4"),
             ("alpha_init", 0.0 < self.alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-2"),
             ("feature_dim", self.feature_dim >= 0, "use 0 or more"),
-            ("feature_scale", 0.0 < self.feature_scale <= 1.0, "use a value in (0, 1]"),
             ("mlp_width", self.mlp_width >= 1, "use 1 or more"),
             ("mlp_depth", self.mlp_depth >= 1, "use 1 or more"),
             ("dir_freqs", self.dir_freqs >= 0, "use 0 or more"),
             ("stepsize", self.stepsize > 0.0, "use a positive step, e.g. 0.5 voxels"),
-            ("early_stop_eps", 0.0 <= self.early_stop_eps < 1.0, "use 0 (off) or a small value such as 1e-4"),
             ("occupancy_every", self.occupancy_every >= 0, "use 0 (never) or more"),
             ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
              "use increasing positive fine-stage steps, e.g. [100, 200]"),
@@ -218,30 +209,11 @@ def march_packed(
     return ray_idx, t, delta
 
 
-def packed_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Transmittance in front of each packed sample, and after each ray's last one.
-
-    ``T_i = exp(-sum of the ray's earlier tau)``, the exclusive per-ray sum taken from one running
-    sum in float64 (exact enough for any batch).
-
-    Args:
-        tau: (M,) non-negative optical depths, samples of a ray contiguous and front to back.
-        ray_idx: (M,) non-decreasing ray of each sample.
-        n_rays: number of rays.
-
-    Returns:
-        before (M,) in [0, 1]; t_final (n_rays,) in [0, 1] (1 for rays without samples).
-    """
-    tau64 = tau.double()
-    ray_sum = tau64.new_zeros(n_rays).index_add(0, ray_idx, tau64)
-    before_ray = torch.cumsum(ray_sum, 0) - ray_sum
-    # index_select, not tau[idx]: its backward is an index_add_, not an accumulating index_put_.
-    before = (torch.cumsum(tau64, 0) - tau64 - before_ray.index_select(0, ray_idx)).clamp(min=0.0)
-    return torch.exp(-before).to(tau.dtype), torch.exp(-ray_sum).to(tau.dtype)
-
-
 def packed_weights(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Compositing weights ``T_i * alpha_i`` of packed samples (the packed form of ``render_weights``).
+
+    The transmittance in front of a sample, ``T_i = exp(-sum of the ray's earlier tau)``, takes its
+    exclusive per-ray sum from one running sum in float64 (exact enough for any batch).
 
     Args:
         tau: (M,) non-negative optical depths, samples of a ray contiguous and front to back.
@@ -252,8 +224,12 @@ def packed_weights(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tup
         weights (M,) in [0, 1]; t_final (n_rays,) transmittance after each ray's last sample
         (1 for rays without samples), so that per ray ``sum(weights) + t_final == 1``.
     """
-    before, t_final = packed_transmittance(tau, ray_idx, n_rays)
-    return before * -torch.expm1(-tau), t_final
+    tau64 = tau.double()
+    ray_sum = tau64.new_zeros(n_rays).index_add(0, ray_idx, tau64)
+    before_ray = torch.cumsum(ray_sum, 0) - ray_sum
+    # index_select, not before_ray[ray_idx]: its backward is an index_add_, not an accumulating index_put_.
+    before = (torch.cumsum(tau64, 0) - tau64 - before_ray.index_select(0, ray_idx)).clamp(min=0.0)
+    return torch.exp(-before).to(tau.dtype) * -torch.expm1(-tau), torch.exp(-ray_sum).to(tau.dtype)
 
 
 # ----- model --------------------------------------------------------------------------------------
@@ -298,8 +274,8 @@ class VoxelGrid(RadianceModel):
     ``view_dependent`` is False). ``freeze_first(1)`` freezes the density grid (geometry),
     ``freeze_first(2)`` also the feature grid, leaving only the decoder to adapt.
 
-    Parameters: ``density_coarse`` / ``density`` are (1, X, Y, Z); ``color_coarse`` (X*Y*Z, 3)
-    and ``features`` (X*Y*Z, C) are flat channels-last. Buffers: ``scene_bounds`` (2, 3),
+    Parameters (channels-first grids): ``density_coarse`` / ``density`` (1, X, Y, Z),
+    ``color_coarse`` (3, X, Y, Z), ``features`` (3 + feature_dim, X, Y, Z). Buffers: ``scene_bounds`` (2, 3),
     ``bounds`` (2, 3) the current stage's box, ``mask`` the occupancy cache (a (1, 1, 1) True
     when there is none).
     """
@@ -333,12 +309,10 @@ class VoxelGrid(RadianceModel):
         self.stage = "coarse"
         self.bounds = bounds
         self.size, self.voxel = tuple(size), voxel_layout(bounds, cfg.coarse_num_voxels)[1]
-        self.feature_size = self.size
         self.unit = self.voxel
         self.shift = softplus_shift_for_alpha(cfg.coarse_alpha_init, cfg.stepsize)
-        n = math.prod(self.size)
         self.density_coarse = nn.Parameter(torch.zeros(1, *self.size, device=bounds.device))
-        self.color_coarse = nn.Parameter(torch.zeros(n, 3, device=bounds.device))
+        self.color_coarse = nn.Parameter(torch.zeros(3, *self.size, device=bounds.device))
 
     def _fine_num_voxels(self) -> int:
         return max(8, int(self.config.num_voxels / 2 ** (len(self.config.growth_steps) - self.level)))
@@ -351,38 +325,35 @@ class VoxelGrid(RadianceModel):
         self.bounds = bounds
         self.mask = mask if mask is not None else torch.ones(1, 1, 1, dtype=torch.bool, device=device)
         _, self.unit = voxel_layout(bounds, cfg.num_voxels)
-        self._set_fine_sizes()
+        self.size, self.voxel = voxel_layout(bounds, self._fine_num_voxels())
         self.shift = softplus_shift_for_alpha(cfg.alpha_init, cfg.stepsize)
         density = torch.zeros(1, *self.size, device=device)
-        feats = torch.zeros(self._channels(), *self.feature_size, device=device)
+        feats = torch.zeros(self._channels(), *self.size, device=device)
         if coarse is not None:
             c_density, c_color, c_bounds, c_size, c_unit, c_shift = coarse
             pts = grid_points(bounds, self.size).reshape(-1, 3)
             sigma_world = F.softplus(interp_cf(c_density, pts, c_bounds)[:, 0] + c_shift) / c_unit
             density = (softplus_inverse(sigma_world * self.unit) - self.shift).view(1, *self.size)
-            c_color_cf = c_color.t().reshape(3, *c_size)
-            pts = grid_points(bounds, self.feature_size).reshape(-1, 3)
-            feats[:3] = interp_cf(c_color_cf, pts, c_bounds).t().reshape(3, *self.feature_size)
+            feats[:3] = interp_cf(c_color, pts, c_bounds).t().reshape(3, *self.size)
         for name in ("density_coarse", "color_coarse"):
             if name in self._parameters:
                 delattr(self, name)
         self.density = nn.Parameter(density)
-        self.features = nn.Parameter(feats.reshape(self._channels(), -1).t().contiguous())
+        self.features = nn.Parameter(feats)
         if cfg.view_dependent and "mlp" not in self._modules:
             self.mlp = self._pending_mlp.to(device)
-
-    def _set_fine_sizes(self) -> None:
-        """Density and feature grid sizes of the current growth level."""
-        num = self._fine_num_voxels()
-        self.size, self.voxel = voxel_layout(self.bounds, num)
-        if self.config.feature_scale == 1.0:
-            self.feature_size = self.size
-        else:
-            self.feature_size = voxel_layout(self.bounds, max(8, int(num * self.config.feature_scale**3)))[0]
 
     def _channels(self) -> int:
         """Feature-grid channels: 3 diffuse logits, plus the MLP's inputs when view-dependent."""
         return 3 + (self.config.feature_dim if self.config.view_dependent else 0)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
+        # Grids saved flat channels-last, (X*Y*Z, C), before they were stored channels-first.
+        for name in ("features", "color_coarse"):
+            value, own = state_dict.get(prefix + name), self._parameters.get(name)
+            if value is not None and own is not None and value.dim() == 2 and own.dim() == 4:
+                state_dict[prefix + name] = value.t().reshape(own.shape)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def structure(self) -> dict[str, Any]:
         return {
@@ -391,7 +362,6 @@ class VoxelGrid(RadianceModel):
             "fine_step0": self.fine_step0,
             "bounds": self.bounds.tolist(),
             "size": list(self.size),
-            "feature_size": list(self.feature_size),
             "mask_shape": list(self.mask.shape),
         }
 
@@ -405,9 +375,8 @@ class VoxelGrid(RadianceModel):
             self._init_fine(bounds, mask, None)
         else:
             self._init_coarse(bounds, tuple(structure["size"]))
-        expected = (list(structure["size"]), list(structure.get("feature_size", structure["size"])))
-        if (list(self.size), list(self.feature_size)) != expected:
-            raise ValueError(f"grid sizes {self.size}, {self.feature_size} do not match the checkpoint's {expected}")
+        if list(self.size) != list(structure["size"]):
+            raise ValueError(f"grid size {self.size} does not match the checkpoint's {structure['size']}")
 
     # ----- interface ---------------------------------------------------------------------------
     def layers(self) -> list[Layer]:
@@ -453,12 +422,12 @@ class VoxelGrid(RadianceModel):
         if self.stage != "fine":
             return StepEvent()
         fine_step = step - self.fine_step0
-        if self.level < len(cfg.growth_steps) and fine_step >= cfg.growth_steps[self.level]:
+        grown = self.level < len(cfg.growth_steps) and fine_step >= cfg.growth_steps[self.level]
+        if grown:
             self._grow()
-            return StepEvent(True, f"grid grown to {self.size}")
         if cfg.occupancy_every > 0 and fine_step > 0 and fine_step % cfg.occupancy_every == 0 and cfg.empty_space_skipping:
             self._prune_mask()
-        return StepEvent()
+        return StepEvent(True, f"grid grown to {self.size}") if grown else StepEvent()
 
     def _density_grid(self) -> torch.Tensor:
         return self.density_coarse if self.stage == "coarse" else self.density
@@ -496,12 +465,10 @@ class VoxelGrid(RadianceModel):
     @torch.no_grad()
     def _grow(self) -> None:
         self.level += 1
-        old = self.feature_size
-        self._set_fine_sizes()
-        channels = self.features.shape[1]
-        feats = resample_cf(self.features.data.t().reshape(channels, *old), self.feature_size)
-        self.density = nn.Parameter(resample_cf(self.density.data, self.size))
-        self.features = nn.Parameter(feats.reshape(channels, -1).t().contiguous())
+        self.size, self.voxel = voxel_layout(self.bounds, self._fine_num_voxels())
+        for name in ("density", "features"):  # frozen grids stay frozen
+            old = self._parameters[name]
+            setattr(self, name, nn.Parameter(resample_cf(old.data, self.size), requires_grad=old.requires_grad))
 
     @torch.no_grad()
     def _prune_mask(self) -> None:
@@ -514,49 +481,6 @@ class VoxelGrid(RadianceModel):
             self.mask = pruned
 
     # ----- rendering ---------------------------------------------------------------------------
-    @torch.no_grad()
-    def _live_counts(
-        self, density: torch.Tensor, x: torch.Tensor, per_unit: torch.Tensor, first: torch.Tensor, counts: torch.Tensor,
-        chunk: int = 16,
-    ) -> tuple[torch.Tensor, int]:
-        """Early ray termination: how many leading samples of each ray lie in front of ``early_stop_eps`` transmittance.
-
-        Densities are evaluated (without autograd) front to back, ``chunk`` samples of every
-        still-visible ray at a time, so the samples behind a ray's termination point are mostly
-        never evaluated. Transmittance only falls along a ray, so its live samples are a prefix.
-
-        Args:
-            density: (V, 1) flat density grid; x (3, M) corner coordinates and per_unit (M,)
-            sample lengths over ``unit`` of packed samples; first (n_rays,) the index of each
-            ray's first sample and counts (n_rays,) its number of samples.
-
-        Returns:
-            live counts (n_rays,) int64, and how many samples were evaluated.
-        """
-        eps = self.config.early_stop_eps
-        n_rays = counts.shape[0]
-        steps = torch.arange(chunk, device=counts.device)
-        trans = per_unit.new_ones(n_rays)  # transmittance in front of the current chunk
-        live = torch.zeros_like(counts)
-        alive = torch.nonzero(counts)[:, 0]
-        evaluated, start = 0, 0
-        while alive.numel():
-            rank = start + steps
-            valid = (rank[None] < counts.index_select(0, alive)[:, None]).view(-1)
-            pick = torch.nonzero(valid)[:, 0]
-            part = (first.index_select(0, alive)[:, None] + rank[None]).view(-1).index_select(0, pick)
-            rays = alive.index_select(0, torch.div(pick, chunk, rounding_mode="floor"))
-            evaluated += int(part.numel())
-            idx, w = corners_from_coords(take_columns(x, part), self.size)
-            tau = F.softplus(trilinear_gather(density, idx, w)[:, 0] + self.shift) * per_unit.index_select(0, part)
-            before, after = packed_transmittance(tau, rays, n_rays)
-            live.index_add_(0, rays, (before * trans.index_select(0, rays) > eps).long())
-            trans = trans * after
-            start += chunk
-            still = (trans.index_select(0, alive) > eps) & (counts.index_select(0, alive) > start)
-            alive = alive.index_select(0, torch.nonzero(still)[:, 0])
-        return live, evaluated
-
     def forward(
         self,
         rays: RayBatch,
@@ -585,40 +509,27 @@ class VoxelGrid(RadianceModel):
             mask_size = tuple(self.mask.shape)
             xm = x if mask_size == self.size else x * ((torch.tensor(mask_size, dtype=dtype, device=device) - 1) / top)[:, None]
             keep = torch.nonzero(self.mask.view(-1)[nearest_from_coords(xm, mask_size)])[:, 0]  # type: ignore[arg-type]
-            ray_idx, t, delta, x = ray_idx[keep], t[keep], delta[keep], take_columns(x, keep)
-        density = self._density_grid().view(-1, 1)
-        per_unit = delta / self.unit
-        evaluated = int(ray_idx.shape[0])
-        if cfg.early_stop_eps > 0 and evaluated:
-            counts = torch.bincount(ray_idx, minlength=n)
-            first = torch.cumsum(counts, 0) - counts
-            live, evaluated = self._live_counts(density, x, per_unit, first, counts)
-            total = int(live.sum())
-            ray_idx = torch.repeat_interleave(torch.arange(n, device=device), live, output_size=total)
-            pos = (first - (torch.cumsum(live, 0) - live)).index_select(0, ray_idx) + torch.arange(total, device=device)
-            t, per_unit, x = t[pos], per_unit[pos], take_columns(x, pos)
+            ray_idx, t, delta, x = ray_idx.index_select(0, keep), t[keep], delta[keep], take_columns(x, keep)
         idx, w = corners_from_coords(x, self.size)
-        tau = F.softplus(trilinear_gather(density, idx, w)[:, 0] + self.shift) * per_unit
+        raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
+        tau = F.softplus(raw + self.shift) * (delta / self.unit)
         weights, t_final = packed_weights(tau, ray_idx, n)
         sel = torch.nonzero(weights.detach() > (cfg.fast_color_thres if fine else cfg.coarse_fast_color_thres))[:, 0]
         ray_c, w_c = ray_idx.index_select(0, sel), weights.index_select(0, sel)
-        if self.feature_size != self.size:
-            scale = (torch.tensor(self.feature_size, dtype=dtype, device=device) - 1) / top
-            idx_c, w8_c = corners_from_coords(take_columns(x, sel) * scale[:, None], self.feature_size)
-        elif sel.numel() == weights.numel():
+        if sel.numel() == weights.numel():
             idx_c, w8_c = idx, w
         else:
             idx_c, w8_c = take_columns(idx, sel), take_columns(w, sel)
         if not fine:
-            logits = trilinear_gather(self.color_coarse, idx_c, w8_c)
+            logits = trilinear_gather(self.color_coarse.view(3, -1), idx_c, w8_c).t()
         else:
-            feats = trilinear_gather(self.features, idx_c, w8_c)
-            logits = feats[:, :3]
+            feats = trilinear_gather(self.features.view(self.features.shape[0], -1), idx_c, w8_c)  # (C, N)
+            logits = feats[:3].t()
             if cfg.view_dependent:
                 view = positional_encoding(rays.directions, cfg.dir_freqs)
-                logits = logits + self.mlp(feats[:, 3:], view, ray_c)
+                logits = logits + self.mlp(feats[3:].t(), view, ray_c)
         colour = torch.sigmoid(logits)
         rgb = weights.new_zeros(n, 3).index_add(0, ray_c, w_c[:, None] * colour)
         rgb = rgb + t_final[:, None] * background
         depth = weights.new_zeros(n).index_add(0, ray_idx, weights * t) + t_final * far
-        return RenderOutput(rgb=rgb, acc=1.0 - t_final, depth=depth, samples_evaluated=evaluated)
+        return RenderOutput(rgb=rgb, acc=1.0 - t_final, depth=depth, samples_evaluated=int(ray_idx.shape[0]))
