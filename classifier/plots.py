@@ -42,7 +42,7 @@ def plot_training_curve(history: Mapping[str, Any], path: str | os.PathLike, *, 
         acc.set_ylabel("accuracy")
         lines = ax.get_legend_handles_labels()[0] + acc.get_legend_handles_labels()[0]
         labels = ax.get_legend_handles_labels()[1] + acc.get_legend_handles_labels()[1]
-        ax.legend(lines, labels, fontsize=8, loc="center right")
+        ax.legend(lines, labels, fontsize=8, loc="lower left")
     if title:
         ax.set_title(title, fontsize=10)
     fig.tight_layout()

@@ -10,8 +10,8 @@ Scores (names as in :data:`classifier.config.SCORES`):
 - ``msp``: the largest averaged probability (maximum softmax probability).
 - ``energy``: the negative free energy ``logsumexp(logits)`` of each view, averaged over views.
 - ``mahalanobis``: minus the squared Mahalanobis distance of the scene's mean penultimate
-  feature (over its views) to the nearest class, under a two-level Gaussian model of scenes and
-  views fitted to the training scenes (:class:`FeatureStats`).
+  feature (over its views) to the nearest class, under the spread of the training scenes' mean
+  features (:class:`FeatureStats`).
 """
 
 from __future__ import annotations
@@ -25,23 +25,26 @@ from classifier.config import SCORES
 
 @dataclass(frozen=True)
 class FeatureStats:
-    """A two-level Gaussian model of penultimate features: class -> scene -> view.
+    """Gaussian model of a scene's mean penultimate feature, per class, with one shared spread.
 
-    A scene of class ``c`` has a mean feature ``m ~ N(means[c], between)``; each of its views has
-    features ``f ~ N(m, within)``. The mean of ``n`` views of a scene is then distributed as
-    ``N(means[c], between + within / n)``, which is what the ``mahalanobis`` score measures
-    against: a scene seen in many views is judged on its mean with the matching spread, and a
-    single image gets the wider spread of one view.
+    ``between`` is the covariance of the training scenes' mean features (each the mean of
+    ``reference_views`` views) around their class mean. A scene seen in fewer views has a noisier
+    mean; the model widens the spread for it by the view covariance: the mean of ``n`` views is
+    compared under ``between + within * max(0, 1/n - 1/reference_views)``, so a single photo is
+    not flagged unknown just for being one view. Scenes with more views keep ``between`` (a
+    measured, slightly conservative spread).
 
     Attributes:
         means: (n_classes, dim) class means of the training scenes' mean features.
         between: (dim, dim) covariance of scene means around their class mean (shrunk, positive definite).
         within: (dim, dim) covariance of view features around their scene mean (shrunk).
+        reference_views: (,) how many views each training scene mean averaged (harmonic mean).
     """
 
     means: torch.Tensor
     between: torch.Tensor
     within: torch.Tensor
+    reference_views: torch.Tensor
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -69,8 +72,9 @@ def energy_score(logits: torch.Tensor) -> torch.Tensor:
 
 
 def scene_precision(stats: FeatureStats, n_views: int) -> torch.Tensor:
-    """(dim, dim) inverse of ``between + within / n_views``, in float64."""
-    cov = stats.between.double() + stats.within.double() / max(1, n_views)
+    """(dim, dim) inverse of ``between + within * max(0, 1/n_views - 1/reference_views)``, in float64."""
+    extra = max(0.0, 1.0 / max(1, n_views) - 1.0 / float(stats.reference_views))
+    cov = stats.between.double() + stats.within.double() * extra
     return torch.linalg.inv(cov)
 
 
@@ -97,7 +101,7 @@ def mahalanobis_score(features: torch.Tensor, stats: FeatureStats) -> torch.Tens
         stats: the two-level feature model (see :class:`FeatureStats`).
 
     Returns:
-        scalar (float64), at most 0; the spread used is ``between + within / n_views``.
+        scalar (float64), at most 0; the spread is widened for scenes with few views (see :class:`FeatureStats`).
     """
     precision = scene_precision(stats, features.shape[0])
     return -mahalanobis_distances(features.mean(dim=0, keepdim=True), stats.means, precision).min()
@@ -166,13 +170,12 @@ def _shrink(cov: torch.Tensor, shrinkage: float) -> torch.Tensor:
 def fit_feature_stats(
     features: torch.Tensor, labels: torch.Tensor, scene_index: torch.Tensor, n_classes: int, shrinkage: float
 ) -> FeatureStats:
-    """Fit the two-level feature model (:class:`FeatureStats`) to the views of training scenes.
+    """Fit :class:`FeatureStats` to the views of training scenes.
 
-    ``within`` is the pooled covariance of views around their scene mean. The scene means scatter
-    around their class mean with covariance ``between + within / n`` (``n`` views each, harmonic
-    mean over scenes), so ``between`` is that scatter minus ``within / n``, with negative
-    eigenvalues clipped. Both are then shrunk towards a multiple of the identity:
-    ``(1 - shrinkage) * S + shrinkage * mean(diag S) * I``.
+    ``between`` is the pooled covariance of the scene means around their class means, ``within``
+    that of the views around their scene mean; both are shrunk towards a multiple of the identity,
+    ``(1 - shrinkage) * S + shrinkage * mean(diag S) * I`` (the scene-mean covariance has rank at
+    most the number of scenes, so shrinkage is what makes it invertible).
 
     Args:
         features: (n_views, dim) penultimate features of the training views (not augmented).
@@ -195,11 +198,14 @@ def fit_feature_stats(
             raise ValueError(f"class {c} has no training scene")
         means[c] = rows.mean(dim=0)
     scene_dev = scene_means - means[scene_labels]
-    scatter = scene_dev.T @ scene_dev / max(1, n_scenes - n_classes)
-    n_harmonic = float(n_scenes / (1.0 / counts.double()).sum())
-    evals, evecs = torch.linalg.eigh(scatter - within / n_harmonic)
-    between = (evecs * evals.clamp_min(0.0)) @ evecs.T
-    return FeatureStats(means=means.float(), between=_shrink(between, shrinkage).float(), within=_shrink(within, shrinkage).float())
+    between = scene_dev.T @ scene_dev / max(1, n_scenes - n_classes)
+    reference = n_scenes / float((1.0 / counts.double()).sum())
+    return FeatureStats(
+        means=means.float(),
+        between=_shrink(between, shrinkage).float(),
+        within=_shrink(within, shrinkage).float(),
+        reference_views=torch.tensor(reference, dtype=torch.float32),
+    )
 
 
 @dataclass(frozen=True)

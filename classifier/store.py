@@ -134,16 +134,21 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
     tensors[STATS_PREFIX + "means"] = stats.means
     tensors[STATS_PREFIX + "between"] = stats.between
     tensors[STATS_PREFIX + "within"] = stats.within
+    tensors[STATS_PREFIX + "reference_views"] = stats.reference_views
     return tensors
 
 
-def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: dict[str, Any] | None = None) -> Path:
+def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: dict[str, Any] | None = None, *,
+                    weights_dtype: torch.dtype = torch.float32) -> Path:
     """Write ``model.safetensors`` and ``classifier.json`` into ``folder`` (each atomically).
 
     Args:
         folder: created if missing.
         classifier: what to save.
         extra: more top-level entries for ``classifier.json`` (recipe, metrics, ...).
+        weights_dtype: dtype the network's floating-point weights are stored in; ``torch.float16``
+            halves the file (ResNet-18: 45 -> 22 MB) for shipping, and loading widens them back to
+            float32. The feature statistics of the unknown score always stay float32.
 
     Returns:
         the path of ``classifier.json``.
@@ -151,7 +156,9 @@ def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: di
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     weights = folder / WEIGHTS_FILE
-    save_tensors(weights, classifier_tensors(classifier.model, classifier.stats), metadata={"format": FORMAT})
+    tensors = {k: v.to(weights_dtype) if v.is_floating_point() and not k.startswith(STATS_PREFIX) else v
+               for k, v in classifier_tensors(classifier.model, classifier.stats).items()}
+    save_tensors(weights, tensors, metadata={"format": FORMAT})
     meta = classifier.meta
     doc = {
         "format": FORMAT,
@@ -165,7 +172,7 @@ def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: di
             "normalization": {"mean": list(meta.mean), "std": list(meta.std)},
         },
         "unknown": {"score": meta.score, "threshold": meta.threshold, "thresholds": dict(meta.thresholds)},
-        "weights": {"file": WEIGHTS_FILE, "sha256": sha256_file(weights)},
+        "weights": {"file": WEIGHTS_FILE, "sha256": sha256_file(weights), "dtype": str(weights_dtype).removeprefix("torch.")},
         **(extra or {}),
     }
     write_json(folder / META_FILE, doc)
@@ -270,15 +277,18 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
     if missing or unexpected or wrong:
         what = f"missing {missing[0]}" if missing else f"unexpected {unexpected[0]}" if unexpected else f"shape of {wrong[0]}"
         raise ClassifierError(f"{weights}: tensors do not fit a {meta.arch} with {len(meta.categories)} categories ({what})")
+    # Weights stored in half precision (``save_classifier(..., weights_dtype=torch.float16)``, as the
+    # model zoo ships them) are widened back: the network always runs in float32.
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     model.load_state_dict(state, assign=True)
     try:
-        stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within")))
+        stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within", "reference_views")))
     except KeyError:
-        raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within)") from None
+        raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within/reference_views)") from None
     dim = model.feature_dim
     if tuple(stats.means.shape) != (len(meta.categories), dim) or any(
         tuple(m.shape) != (dim, dim) for m in (stats.between, stats.within)
-    ):
+    ) or stats.reference_views.numel() != 1 or not float(stats.reference_views) >= 1:
         raise ClassifierError(f"{weights}: feature statistics have the wrong shape for {meta.arch}")
     model.to(device).eval()
     return Classifier(meta, model, stats)

@@ -7,8 +7,9 @@ Data use (nothing else is read):
 - **calibration and validation metrics**: the ``val`` scenes of the known categories, all their
   views, without augmentation. The unknown threshold of each score is the quantile that keeps
   ``keep_fraction`` of these scenes;
-- **held-out report**: the ``val`` scenes of the held-out categories, scored only to *report*
-  how well each score flags them (never used for the threshold);
+- **held-out report**: the ``val`` scenes of the held-out categories, scored to report how well
+  each score flags them and, with ``score="auto"``, to pick the score with the best AUROC (never
+  used for a threshold);
 - the ``test`` scenes are not touched (they are for ``scripts/bench_classifier.py``).
 
 The output folder is built under a hidden sibling name and renamed into place at the end, so an
@@ -34,7 +35,7 @@ from nerfmeta.collection.generate import Collection, SceneRecord, load_collectio
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
 
-from classifier.config import SCORES, TrainConfig
+from classifier.config import DEFAULT_SCORE, SCORES, TrainConfig
 from classifier.data import ViewSet, augment_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
@@ -160,8 +161,8 @@ def fit_network(
 ) -> dict[str, Any]:
     """Optimise ``model`` on augmented training views; validate on ``val`` after every epoch.
 
-    The validation after each epoch uses the first ``config.monitor_views`` views of each scene
-    (a cheap monitor for the curve); ``time_s`` and the time budget count it.
+    The validation after each epoch uses ``config.monitor_views`` evenly spaced views of each
+    scene (a cheap monitor for the curve); ``time_s`` and the time budget count it.
 
     Returns:
         history: ``step_loss`` (per step), ``step_time_s``, ``epochs`` (one record per epoch with
@@ -173,8 +174,8 @@ def fit_network(
     generator = torch.Generator().manual_seed(config.seed)
     meta = _meta(config, tuple(str(i) for i in range(model.num_classes)))
     decay, no_decay = [], []
-    for name, p in model.named_parameters():
-        (no_decay if p.dim() == 1 else decay).append(p)
+    for p in model.parameters():
+        (no_decay if p.dim() == 1 else decay).append(p)  # no weight decay on BatchNorm and biases
     optimizer = torch.optim.AdamW(
         [{"params": decay, "weight_decay": config.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
         lr=config.lr,
@@ -294,6 +295,23 @@ def calibrate(
     return stats, thresholds, metrics
 
 
+def select_score(requested: str, metrics: dict[str, Any]) -> tuple[str, str]:
+    """The score the decision uses, and why.
+
+    ``auto`` takes the highest AUROC on the held-out categories' validation scenes (ties go to the
+    earlier of :data:`DEFAULT_SCORE`, then :data:`SCORES` order); without held-out validation
+    scenes it takes :data:`DEFAULT_SCORE`. Any other value is used as given.
+    """
+    if requested != "auto":
+        return requested, "given"
+    aurocs = {name: entry.get("holdout_val_auroc") for name, entry in metrics["scores"].items()}
+    if any(v is None for v in aurocs.values()):
+        return DEFAULT_SCORE, "default (no held-out validation scenes to compare the scores on)"
+    order = [DEFAULT_SCORE] + [s for s in SCORES if s != DEFAULT_SCORE]
+    best = max(order, key=lambda s: (aurocs[s], -order.index(s)))
+    return best, "best AUROC on the held-out categories' validation scenes"
+
+
 def train_classifier(
     config: TrainConfig,
     collection_path: str | os.PathLike,
@@ -341,7 +359,9 @@ def train_classifier(
         cb(TrainEvent("calibrate", history["steps"], history["steps"], time_s=history["time_s"]))
     model.cpu()
     stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories)
-    meta = _meta(config, splits.categories, config.score, thresholds)
+    score, rule = select_score(config.score, metrics)
+    metrics["score_selection"] = {"score": score, "rule": rule}
+    meta = _meta(config, splits.categories, score, thresholds)
     wall_s = time.perf_counter() - wall_start
 
     extra = {

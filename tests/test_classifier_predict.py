@@ -53,27 +53,28 @@ def test_msp_and_energy_scores_by_hand():
     assert float(energy_score(logits)) == pytest.approx((math.log(e2 + 1) + math.log(2.0)) / 2)
 
 
-def _stats(between: float, within: float, dim: int = 2, means=None) -> FeatureStats:
+def _stats(between: float, within: float, dim: int = 2, means=None, reference: float = 4.0) -> FeatureStats:
     means = torch.tensor([[0.0, 0.0], [3.0, 4.0]]) if means is None else means
-    return FeatureStats(means=means, between=torch.eye(dim) * between, within=torch.eye(dim) * within)
+    return FeatureStats(means, torch.eye(dim) * between, torch.eye(dim) * within, torch.tensor(reference))
 
 
 def test_mahalanobis_scores_the_scene_mean_feature():
     feats = torch.tensor([[1.0, 0.0], [3.0, 0.0]])  # mean (2, 0): 4 from class 0, 1 + 16 from class 1
     d2 = mahalanobis_distances(feats.mean(0, keepdim=True), _stats(1, 0).means, torch.eye(2))
     assert torch.allclose(d2, torch.tensor([[4.0, 17.0]], dtype=d2.dtype))
-    # between = I, within = 0: the distance of the mean under the identity
-    assert float(mahalanobis_score(feats, _stats(1.0, 0.0))) == pytest.approx(-4.0)
+    # between = I: the distance of the mean under the identity; within does not count at the reference views
+    assert float(mahalanobis_score(feats.repeat(2, 1), _stats(1.0, 5.0, reference=4.0))) == pytest.approx(-4.0)
 
 
-def test_mahalanobis_spread_shrinks_with_the_number_of_views():
-    # between = 0, within = I: the mean of n views has covariance I / n, so the distance is n * |m - mu|^2
-    stats = _stats(0.0, 1.0)
-    one = torch.tensor([[1.0, 0.0]])
-    four = one.repeat(4, 1)
-    assert torch.allclose(scene_precision(stats, 4), 4 * torch.eye(2, dtype=torch.float64))
-    assert float(mahalanobis_score(one, stats)) == pytest.approx(-1.0)
-    assert float(mahalanobis_score(four, stats)) == pytest.approx(-4.0)
+def test_mahalanobis_spread_widens_for_scenes_with_fewer_views():
+    # between = I, within = 4 I, reference 4 views: n views get I + 4 (1/n - 1/4) I
+    stats = _stats(1.0, 4.0, reference=4.0)
+    assert torch.allclose(scene_precision(stats, 4), torch.eye(2, dtype=torch.float64))
+    assert torch.allclose(scene_precision(stats, 8), torch.eye(2, dtype=torch.float64))  # never narrower than between
+    assert torch.allclose(scene_precision(stats, 1), torch.eye(2, dtype=torch.float64) / 4.0)
+    one = torch.tensor([[2.0, 0.0]])
+    assert float(mahalanobis_score(one, stats)) == pytest.approx(-1.0)  # 4 / (1 + 4 * 3/4)
+    assert float(mahalanobis_score(one.repeat(4, 1), stats)) == pytest.approx(-4.0)
 
 
 def test_threshold_decision_flips_at_the_threshold():
@@ -115,7 +116,7 @@ def test_auroc_exact_cases():
     assert auroc(torch.tensor([1.0]), torch.tensor([1.0])) == 0.5
 
 
-def test_fit_feature_stats_separates_scene_and_view_spread():
+def test_fit_feature_stats_measures_scene_and_view_spread():
     g = torch.Generator().manual_seed(0)
     class_means = torch.tensor([[0.0, 0.0], [10.0, 0.0]])
     n_scenes, n_views = 2000, 5
@@ -125,7 +126,10 @@ def test_fit_feature_stats_separates_scene_and_view_spread():
     feats = scene_means[scene_index] + torch.randn(n_scenes * n_views, 2, generator=g) * torch.tensor([1.0, 3.0])
     stats = fit_feature_stats(feats, scene_labels[scene_index], scene_index, 2, shrinkage=0.0)
     assert torch.allclose(stats.means, class_means, atol=0.2)
-    assert torch.allclose(stats.between, torch.diag(torch.tensor([4.0, 0.25])), atol=0.3)
+    assert float(stats.reference_views) == pytest.approx(5.0)
+    # the spread of 5-view means: between-scene variance + view variance / 5
+    expected = torch.diag(torch.tensor([4.0 + 1.0 / 5, 0.25 + 9.0 / 5]))
+    assert torch.allclose(stats.between, expected, rtol=0.1, atol=0.05)
     assert torch.allclose(stats.within, torch.diag(torch.tensor([1.0, 9.0])), rtol=0.05, atol=0.1)
     # shrinkage keeps everything invertible with one scene per class and one view per scene
     one = fit_feature_stats(torch.tensor([[1.0, 2.0], [3.0, 4.0]]), torch.tensor([0, 1]), torch.tensor([0, 1]), 2, 0.5)

@@ -31,7 +31,7 @@ def _classifier(seed: int = 0) -> Classifier:
     model = build_model("resnet18", len(CATS), seed=seed).eval()
     g = torch.Generator().manual_seed(seed)
     dim = model.feature_dim
-    stats = FeatureStats(torch.randn(len(CATS), dim, generator=g), torch.eye(dim) * 0.5, torch.eye(dim) * 2.0)
+    stats = FeatureStats(torch.randn(len(CATS), dim, generator=g), torch.eye(dim) * 0.5, torch.eye(dim) * 2.0, torch.tensor(8.0))
     meta = ClassifierMeta(
         categories=CATS, arch="resnet18", stem="imagenet", input_size=16, background=(1.0, 1.0, 1.0),
         mean=(0.5, 0.5, 0.5), std=(0.25, 0.25, 0.25), score="mahalanobis", threshold=-100.0,
@@ -149,3 +149,20 @@ def _sha(path: Path) -> str:
     from nerfmeta.io import sha256_file
 
     return sha256_file(path)
+
+
+def test_half_precision_weights_halve_the_file_and_load_as_float32(tmp_path: Path):
+    clf = _classifier()
+    full = save_classifier(tmp_path / "full", clf).parent
+    half = save_classifier(tmp_path / "half", clf, weights_dtype=torch.float16).parent
+    size_full, size_half = ((f / WEIGHTS_FILE).stat().st_size for f in (full, half))
+    assert size_half < 0.55 * size_full
+    assert json.loads((half / META_FILE).read_text())["weights"]["dtype"] == "float16"
+    loaded = load_classifier(half)
+    assert all(p.dtype == torch.float32 for p in loaded.model.parameters())
+    assert loaded.stats.between.dtype == torch.float32
+    assert torch.equal(loaded.stats.between, clf.stats.between)  # the score's statistics are not rounded
+    expected, got = classify_views(clf, _views()), classify_views(loaded, _views())
+    assert got.category == expected.category
+    for c in CATS:
+        assert got.probabilities[c] == pytest.approx(expected.probabilities[c], abs=2e-3)

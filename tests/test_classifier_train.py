@@ -15,7 +15,7 @@ from classifier.data import composite, load_view_set, normalize
 from classifier.inputs import read_scene_views
 from classifier.model import build_model
 from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, WEIGHTS_FILE, classify_views, load_classifier
-from classifier.train import fit_network, lr_factor, plan_splits, train_classifier
+from classifier.train import fit_network, lr_factor, plan_splits, select_score, train_classifier
 from nerfmeta.cli import main
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.errors import ConfigError
@@ -54,6 +54,17 @@ def test_lr_factor_warms_up_then_decays_to_zero():
     assert lr_factor(1.0, 0.2) == pytest.approx(0.0, abs=1e-12)
     values = [lr_factor(p / 100, 0.2) for p in range(20, 101)]
     assert all(a >= b for a, b in zip(values, values[1:]))
+
+
+def test_auto_score_picks_the_best_validation_auroc_else_the_default():
+    with_holdout = {"scores": {"msp": {"holdout_val_auroc": 0.9}, "energy": {"holdout_val_auroc": 0.97},
+                               "mahalanobis": {"holdout_val_auroc": 0.95}}}
+    assert select_score("auto", with_holdout)[0] == "energy"
+    tie = {"scores": {k: {"holdout_val_auroc": 0.9} for k in ("msp", "energy", "mahalanobis")}}
+    assert select_score("auto", tie)[0] == "mahalanobis"
+    without = {"scores": {k: {} for k in ("msp", "energy", "mahalanobis")}}
+    assert select_score("auto", without) == ("mahalanobis", select_score("auto", without)[1])
+    assert select_score("msp", with_holdout) == ("msp", "given")
 
 
 def _loss(model, views, config) -> float:

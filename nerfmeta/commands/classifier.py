@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=_DEFAULT.batch_size, metavar="N", help=f"views per step (default {_DEFAULT.batch_size})")
     p.add_argument("--lr", type=float, default=_DEFAULT.lr, help=f"peak AdamW learning rate (default {_DEFAULT.lr:g})")
     p.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop optimising after S seconds (the schedule follows time)")
-    p.add_argument("--score", choices=SCORES, default=_DEFAULT.score, help=f"unknown score used by the decision (default {_DEFAULT.score}; all are calibrated and reported)")
+    p.add_argument("--score", choices=("auto", *SCORES), default=_DEFAULT.score, help="unknown score used by the decision; auto (default) picks the best validation AUROC on held-out categories' val scenes, else mahalanobis (all are calibrated and reported)")
     p.add_argument("--keep-fraction", type=float, default=_DEFAULT.keep_fraction, metavar="F", help=f"fraction of known validation scenes the threshold keeps (default {_DEFAULT.keep_fraction:g})")
     p.add_argument("--input-size", type=int, default=_DEFAULT.input_size, metavar="PX", help=f"network input side in pixels (default {_DEFAULT.input_size})")
     p.add_argument("--stem", choices=STEMS, default=_DEFAULT.stem, help=f"ResNet stem: torchvision's 7x7/2 conv + max-pool, or a 3x3 conv of stride 2 or 1 without max-pool (more resolution, more compute; default {_DEFAULT.stem})")
@@ -129,14 +129,15 @@ def run_train(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     val = doc["validation"]
-    chosen = val["scores"][config.score]
+    score = doc["unknown"]["score"]
+    chosen = val["scores"][score]
     held = ""
     if "holdout_val_auroc" in chosen:
         held = (f", held-out val scenes flagged {chosen['holdout_val_detection_rate']:.1%} "
                 f"(AUROC {chosen['holdout_val_auroc']:.3f})")
     t = doc["training"]
     print(f"validation: {val['val_scene_accuracy']:.1%} of {val['val_scenes']} scenes right, "
-          f"{chosen['val_false_unknown_rate']:.1%} flagged unknown ({config.score} < {chosen['threshold']:.4g}){held}")
+          f"{chosen['val_false_unknown_rate']:.1%} flagged unknown ({score} < {chosen['threshold']:.4g}; {val['score_selection']['rule']}){held}")
     print(f"trained {t['steps']} steps ({t['epochs_done']:.2f} epochs, {t['stop_reason']}) in "
           f"{t['optimisation_time_s']:.0f} s; total {t['wall_time_s']:.0f} s")
     print(f"classifier in {args.out}/ (model.safetensors, classifier.json, history.json, training_curve.png)")
