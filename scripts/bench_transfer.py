@@ -9,10 +9,12 @@ What it does (every fit through ``nerfmeta.fit.run.run_fit``, the code behind ``
 3. Fits, per backbone, the *seen* group (the test scene of every seen category) from scratch and
    from its category model (first ``--freeze`` layers frozen), and the *unseen* group (the first
    scenes of the held-out categories) from scratch; with ``--meta DIR`` (a ``nerfmeta meta-train``
-   folder, one per backbone) both groups also from the meta-initialisation. Controls on the seen
-   group: transfer from another category's model (``category-other``) and transfer onto a black
-   background from the white-background model (``category-black``, scratch on black beside it).
-4. Optionally (``--freeze-sweep``) fits two seen scenes with every sensible ``--freeze K``.
+   folder, one per backbone) both groups also from the meta-initialisation. Controls on the first
+   seen scenes: transfer from another category's model (``category-other``), scratch in the
+   category models' canonical box instead of the scene's own box (``scratch-canonical``, the same
+   files with ``aabb`` replaced), and transfer onto a black background from the white-background
+   model (``category-black``, with scratch on black, ``scratch-black``, as its reference).
+4. Optionally (``--freeze-sweep nerf,grid``) fits two seen scenes with every sensible ``--freeze K``.
 
 Every fit of a scene uses the same backbone config, optimiser (Adam, the backbone's learning-rate
 groups, exponential decay to 0.1x over the iterations), ray batch and seed; only the starting
@@ -22,12 +24,13 @@ scratch reaches at ``--iters`` (1000); each method's iterations and optimisation
 are the first scheduled evaluation at or above it.
 
 Results: ``OUT/results.json``, plots in ``docs/bench/transfer_*.png`` and the
-``## Transfer and meta-learning`` section of BENCHMARKS.md. Finished fits are cached in ``OUT``
-(a rerun with the same ``--out`` skips them).
+``## Transfer and meta-learning`` section of BENCHMARKS.md. Finished fits and category models are
+cached in ``OUT``: a rerun with the same ``--out`` and settings reuses them (after a change to a
+backbone's code, delete ``OUT/models/BACKBONE`` and ``OUT/fits/BACKBONE``).
 
 Usage::
 
-    .venv/bin/python scripts/bench_transfer.py --out runs/bench_transfer [--meta DIR ...] [--freeze-sweep]
+    .venv/bin/python scripts/bench_transfer.py --out runs/bench_transfer [--meta DIR ...] [--freeze-sweep nerf,grid]
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import math
 import multiprocessing
 import os
 import re
+import shutil
 import statistics
 import sys
 import time
@@ -60,7 +64,7 @@ from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig  # noqa: E402
 from nerfmeta.fit.run import RunConfig, build_initial_model, run_fit  # noqa: E402
 from nerfmeta.init import load_init  # noqa: E402
-from pretrain.category import CategoryPretrainConfig, pretrain_category  # noqa: E402
+from pretrain.category import CANONICAL_BOX, CategoryPretrainConfig, pretrain_category  # noqa: E402
 
 SECTION = "## Transfer and meta-learning"
 MACHINE = "2-core CPU, no GPU"
@@ -69,6 +73,8 @@ HELD_OUT = ("mug", "vase")
 REPORT_ITERS = (25, 50, 100, 200, 500, 1000)
 SCHEDULE = (1, 2, 3, 5, 8, 10, 15, 20, 25, 30, 40, 50, 60, 80, 100, 125, 150, 200, 250, 300, 400, 500, 600, 800, 1000)
 """Iterations at which the test PSNR is taken (and the final iteration)."""
+EARLY_TARGET = 200
+"""A second, earlier target: the PSNR scratch reaches at this iteration (how much faster the first phase is)."""
 
 COLLECTION = CollectionConfig(categories=CATEGORIES, scenes_per_category=7, views=20, test_views=4, resolution=32,
                               seed=0, val_fraction=0.0, test_fraction=0.15)
@@ -239,9 +245,10 @@ def plan(args, collection_dir: Path, out: Path, metas: dict[str, Path]) -> Plan:
             p.pretrain.append(PretrainJob(backbone, c, str(collection_dir), b["model"], b["batch_rays"], iters,
                                           str(out / "models" / backbone / c)))
 
-        def fit(group, method, record, init, freeze=0, background=white):
+        def fit(group, method, record, init, freeze=0, background=white, scene=None):
             model = b["model"] if init == "scratch" else {}  # a saved init keeps its own config
-            p.fits.append(FitJob(backbone, group, method, record.name, record.category, str(col.scene_path(record)),
+            scene = scene or col.scene_path(record)
+            p.fits.append(FitJob(backbone, group, method, record.name, record.category, str(scene),
                                  init, freeze, model, b["batch_rays"], args.iters, background,
                                  str(out / "fits" / backbone / (method if init == "scratch" else f"{method}-k{freeze}")
                                      / record.name)))
@@ -256,10 +263,12 @@ def plan(args, collection_dir: Path, out: Path, metas: dict[str, Path]) -> Plan:
                 fit("seen", "meta", r, f"meta:{metas[backbone]}")
             if i < args.controls:
                 fit("seen", "category-other", r, f"category:{other}", k)
+                if backbone == "nerf":  # the grid's coarse stage tightens its box anyway
+                    fit("seen", "scratch-canonical", r, "scratch", 0, white, canonical_copy(r, col, out))
             if i < args.black:
                 fit("seen", "scratch-black", r, "scratch", 0, black)
                 fit("seen", "category-black", r, f"category:{model_dir}", k, black)
-            if args.freeze_sweep and i < 2:
+            if backbone in args.freeze_sweep and i < 2:
                 for kk in b["sweep"]:
                     if kk != k:
                         fit("sweep", f"freeze-{kk}", r, f"category:{model_dir}", kk)
@@ -268,6 +277,19 @@ def plan(args, collection_dir: Path, out: Path, metas: dict[str, Path]) -> Plan:
             if backbone in metas:
                 fit("unseen", "meta", r, f"meta:{metas[backbone]}")
     return p
+
+
+def canonical_copy(record, col, out: Path) -> Path:
+    """The scene's files with its ``aabb`` set to the canonical box, so a scratch fit uses the category models' box."""
+    src, dst = col.scene_path(record), out / "canonical_scenes" / record.name
+    if not (dst / "transforms_test.json").exists():
+        shutil.copytree(src, dst, dirs_exist_ok=True)
+        for name in ("transforms_train.json", "transforms_test.json"):
+            doc = json.loads((src / name).read_text())
+            if "aabb" in doc:
+                doc["aabb"] = [list(CANONICAL_BOX[0]), list(CANONICAL_BOX[1])]
+            (dst / name).write_text(json.dumps(doc, indent=1))
+    return dst
 
 
 # ---------------------------------------------------------------------------------------------
@@ -309,34 +331,34 @@ def aggregate(results: list[dict], iters: int) -> dict[str, Any]:
             scratch_runs = by_key.get((backbone, group, "scratch-black"), {})
         else:
             scratch_runs = by_key.get((backbone, group, "scratch"), {})
-        row: dict[str, Any] = {"n": len(runs), "psnr": {}, "scenes": {}}
+        row: dict[str, Any] = {"n": len(runs), "psnr": {}}
         for it in (0, *REPORT_ITERS):
             vals = [r["initial_psnr"] if it == 0 else psnr_at(r["points"], it) for r in runs.values()]
             vals = [v for v in vals if v is not None]
             row["psnr"][it] = mean_sd(vals)
-        reached_iters, reached_time, speed_iter, speed_time = [], [], [], []
-        for name, r in runs.items():
-            base = scratch_runs.get(name)
-            if base is None:
-                continue
-            target = psnr_at(base["points"], iters)  # unrounded; the loop's final evaluation
-            if target is None:
-                continue
-            base_iter, base_time = reach(base["points"], target)
-            it, ts = reach(r["points"], target)
-            row["scenes"][name] = {"target": target, "iters": it, "time_s": ts, "scratch_iters": base_iter,
-                                   "scratch_time_s": base_time, "final": r["final_psnr"]}
-            if it is not None:
-                reached_iters.append(it)
-                reached_time.append(ts)
-                speed_iter.append(base_iter / it)
-                speed_time.append(base_time / ts if ts else float("inf"))
-        row["reached"] = len(reached_iters)
-        row["with_target"] = len(row["scenes"])
-        row["iters_to_target"] = _spread(reached_iters)
-        row["time_to_target"] = _spread(reached_time)
-        row["speedup_iters"] = _spread(speed_iter, geometric=True)
-        row["speedup_time"] = _spread(speed_time, geometric=True)
+        for label, at in (("", iters), ("_early", EARLY_TARGET)):
+            reached_iters, reached_time, speed_iter, speed_time, scenes = [], [], [], [], {}
+            for name, r in runs.items():
+                base = scratch_runs.get(name)
+                target = None if base is None else psnr_at(base["points"], at)  # unrounded evaluations
+                if target is None:
+                    continue
+                base_iter, base_time = reach(base["points"], target)
+                it, ts = reach(r["points"], target)
+                scenes[name] = {"target": target, "iters": it, "time_s": ts, "scratch_iters": base_iter,
+                                "scratch_time_s": base_time, "final": r["final_psnr"]}
+                if it is not None:
+                    reached_iters.append(it)
+                    reached_time.append(ts)
+                    speed_iter.append(base_iter / it)
+                    speed_time.append(base_time / ts if ts else float("inf"))
+            row["scenes" + label] = scenes
+            row["reached" + label] = len(reached_iters)
+            row["with_target" + label] = len(scenes)
+            row["iters_to_target" + label] = _spread(reached_iters)
+            row["time_to_target" + label] = _spread(reached_time)
+            row["speedup_iters" + label] = _spread(speed_iter, geometric=True)
+            row["speedup_time" + label] = _spread(speed_time, geometric=True)
         row["time_per_iter_ms"] = statistics.fmean(1000 * r["time_s"] / iters for r in runs.values())
         out.setdefault(backbone, {}).setdefault(group, {})[method] = row
     return out
@@ -356,8 +378,8 @@ def _spread(values: list[float], geometric: bool = False) -> dict[str, float] | 
 # Plots and report
 
 
-METHOD_ORDER = ("scratch", "category", "meta", "category-other", "scratch-black", "category-black")
-CONTROLS = ("category-other", "scratch-black", "category-black")
+METHOD_ORDER = ("scratch", "category", "meta", "category-other", "scratch-canonical", "scratch-black", "category-black")
+CONTROLS = ("category-other", "scratch-canonical", "scratch-black", "category-black")
 
 
 def _order(method: str) -> tuple[int, str]:
@@ -443,18 +465,22 @@ def section_text(agg: dict, meta: dict) -> str:
             for method, row in sorted(groups.get(group, {}).items(), key=lambda kv: _order(kv[0])):
                 cells = [_fmt(tuple(row["psnr"][i])) for i in (0, *REPORT_ITERS)]
                 lines.append(f"| {group} | {method} | {row['n']} | " + " | ".join(cells) + f" | {row['time_per_iter_ms']:.0f} |")
-        lines += ["", "To reach the PSNR scratch reaches at 1000 iterations (per scene; median (min-max) iterations and "
-                  "optimisation seconds over the scenes that reach it; speed-ups are geometric means (min-max) of "
-                  "scratch's iterations/seconds to that PSNR over the method's):", ""]
-        lines += ["| group | method | reached | iterations | seconds | speed-up (iterations) | speed-up (time) |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += ["", "To reach the PSNR scratch reaches at 1000 iterations, per scene (first scheduled evaluation at or "
+                  "above it; median (min-max) iterations and optimisation seconds over the scenes that reach it; speed-ups "
+                  "are geometric means (min-max) of scratch's iterations/seconds to that PSNR over the method's); the "
+                  f"last four columns the same for the PSNR scratch reaches at {EARLY_TARGET} iterations:", ""]
+        lines += ["| group | method | reached | iterations | seconds | speed-up (iterations) | speed-up (time) | "
+                  f"reached scratch@{EARLY_TARGET} | iterations | speed-up (iterations) | speed-up (time) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for group in ("seen", "unseen", "sweep"):
             for method, row in sorted(groups.get(group, {}).items(), key=lambda kv: _order(kv[0])):
-                if method.startswith("scratch"):
+                if method in ("scratch", "scratch-black"):
                     continue
                 lines.append(f"| {group} | {method} | {row['reached']}/{row['with_target']} | "
                              f"{_fmt_spread(row['iters_to_target'])} | {_fmt_spread(row['time_to_target'], ' s', 1)} | "
-                             f"{_fmt_spread(row['speedup_iters'], 'x', 1)} | {_fmt_spread(row['speedup_time'], 'x', 1)} |")
+                             f"{_fmt_spread(row['speedup_iters'], 'x', 1)} | {_fmt_spread(row['speedup_time'], 'x', 1)} | "
+                             f"{row['reached_early']}/{row['with_target_early']} | {_fmt_spread(row['iters_to_target_early'])} | "
+                             f"{_fmt_spread(row['speedup_iters_early'], 'x', 1)} | {_fmt_spread(row['speedup_time_early'], 'x', 1)} |")
         lines += ["", f"![{backbone} PSNR vs iteration](docs/bench/transfer_{backbone}.png)",
                   f"![{backbone} PSNR vs time](docs/bench/transfer_{backbone}_time.png)", ""]
     lines += meta["findings"]
@@ -489,7 +515,8 @@ def main() -> int:
     parser.add_argument("--pretrain-iters", type=int, default=None, help="category-model iterations (default per backbone)")
     parser.add_argument("--unseen", type=int, default=5, help="scenes of the held-out categories (default 5)")
     parser.add_argument("--freeze", type=int, default=None, help="--freeze K of the category fits (default per backbone)")
-    parser.add_argument("--freeze-sweep", action="store_true", help="also fit 2 seen scenes with every freeze K of the sweep")
+    parser.add_argument("--freeze-sweep", default="", type=lambda s: tuple(filter(None, s.split(","))), metavar="BACKBONES",
+                        help="also fit 2 seen scenes with every freeze K of the sweep, for these backbones (e.g. nerf,grid)")
     parser.add_argument("--controls", type=int, default=2, help="seen scenes also fitted from another category's model (default 2)")
     parser.add_argument("--black", type=int, default=2, help="seen scenes also fitted on a black background, scratch and "
                         "from the white-background category model (default 2)")
