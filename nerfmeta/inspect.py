@@ -14,8 +14,9 @@ import torch
 from matplotlib.figure import Figure
 
 from nerfmeta.data.common import LoadOptions
+from nerfmeta.data.normalize import describe
 from nerfmeta.data.registry import load_scene_with
-from nerfmeta.data.scene import Scene
+from nerfmeta.data.scene import Normalization, Scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import atomic_path, write_json
 from nerfmeta.render.rays import frustum_corners
@@ -63,6 +64,9 @@ class SceneSummary:
     """RGB the alpha channel was composited on; None for opaque images."""
     camera_distance: tuple[float, float, float]
     """Min, median and max distance from the camera centres to the centre of ``bounds``."""
+    normalization: dict[str, float | list[float]]
+    """What loading applied, ``{"scale", "offset"}`` with ``loaded = scale * file + offset``;
+    ``near``, ``far``, ``bounds`` and ``camera_distance`` above are in the loaded frame."""
 
 
 def summarize_scene(scene: Scene) -> SceneSummary:
@@ -90,6 +94,7 @@ def summarize_scene(scene: Scene) -> SceneSummary:
         category=scene.category,
         background=scene.background,
         camera_distance=(float(dist.min()), float(dist.median()), float(dist.max())),
+        normalization=scene.normalization.as_json(),
     )
 
 
@@ -114,6 +119,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("category", s.category or "-"),
         ("background", bg),
         ("camera distance", "to bounds centre: min {:.3f}, median {:.3f}, max {:.3f}".format(*s.camera_distance)),
+        ("normalisation", describe(Normalization(float(s.normalization["scale"]), tuple(s.normalization["offset"])))),  # type: ignore[arg-type]
     ]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

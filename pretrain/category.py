@@ -154,10 +154,11 @@ def category_scene(
         scene = load_scene(path, downscale=downscale, background=background)
         if first is None:
             first = scene
-        elif (scene.height, scene.width, scene.near, scene.far) != (first.height, first.width, first.near, first.far):
+        elif (scene.height, scene.width, scene.near, scene.far, scene.normalization) != (
+                first.height, first.width, first.near, first.far, first.normalization):
             raise ConfigError(f"{path}: {scene.width}x{scene.height} px, near/far {scene.near:g}/{scene.far:g} differ from "
-                              f"{first.source}'s {first.width}x{first.height}, {first.near:g}/{first.far:g}; a category "
-                              "model needs one camera set-up")
+                              f"{first.source}'s {first.width}x{first.height}, {first.near:g}/{first.far:g} (or the load-time "
+                              "normalisation differs, see nerfmeta inspect); a category model needs one camera set-up")
         if bool((scene.bounds[0] < box[0] - 1e-4).any() or (scene.bounds[1] > box[1] + 1e-4).any()):
             raise ConfigError(f"{path}: its box {scene.bounds.tolist()} is not inside the canonical box {list(CANONICAL_BOX)}; "
                               "category models need a collection in the canonical frame")
@@ -186,6 +187,7 @@ def category_scene(
         background=background,
         image_names=tuple(names),
         downscale=downscale,
+        normalization=first.normalization,
     )
     return CategoryData(merged, tuple(r.name for r in records), tuple(owner))
 

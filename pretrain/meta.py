@@ -66,6 +66,7 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import BACKBONES, config_from_dict, default_config
+from nerfmeta.fit.guard import GuardConfig
 
 ALGOS = ("maml", "fomaml", "reptile")
 ENGINES = ("torchfunc", "l2l")
@@ -83,7 +84,8 @@ GRID_FIXED_STAGE: dict[str, Any] = {"coarse_iters": 0, "growth_steps": (), "empt
 
 META_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     "nerf": {"pos_freqs": 6, "depth": 4, "width": 64, "skips": (2,), "n_samples": 32},
-    "grid": {"num_voxels": 40**3, "feature_dim": 6, "mlp_width": 32, "mlp_depth": 2},
+    "grid": {"num_voxels": 40**3, "feature_dim": 6, "mlp_width": 32, "mlp_depth": 2,
+             "view_dependent": True},  # fixed: "auto" would add the MLP mid-fit, changing the parameter set
 }
 """Backbone overrides used unless ``MetaConfig.model`` says otherwise: sized so a meta-step over a
 few tasks takes seconds on a 2-core CPU (the grid fine stage's own defaults are for one scene)."""
@@ -156,9 +158,12 @@ class MetaConfig:
     """Image downscale factor applied when loading the scenes."""
     device: str = "cpu"
     """Torch device; under torchrun ``cuda`` means each process's ``cuda:LOCAL_RANK``."""
+    guard: GuardConfig = GuardConfig(snapshot_every=5)
+    """Divergence guard on the meta-steps: a non-finite meta-gradient or an exploding query MSE rolls back, lowers the outer rate and retries."""
 
     def __post_init__(self) -> None:
-        # JSON has no tuples: accept lists so a saved config loads back equal.
+        # JSON has no tuples or nested dataclasses: accept lists and dicts so a saved config loads back equal.
+        object.__setattr__(self, "guard", GuardConfig.coerce(self.guard))
         object.__setattr__(self, "categories", tuple(self.categories))
         object.__setattr__(self, "background", tuple(float(v) for v in self.background))
         object.__setattr__(self, "model", {k: tuple(v) if isinstance(v, list) else v for k, v in dict(self.model).items()})

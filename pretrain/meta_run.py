@@ -14,6 +14,14 @@ Layout of ``RUN/``::
 Every file is written atomically, and only by rank 0 of a distributed run. A resumed run
 continues from the checkpoint's step and produces the same parameters as an uninterrupted run
 (tasks are a function of (seed, step), see :mod:`pretrain.meta_tasks`).
+
+A divergence guard (:mod:`nerfmeta.fit.guard`, ``MetaConfig.guard``) watches every meta-step: a
+non-finite meta-gradient (or Reptile direction) or a query MSE that explodes rolls the parameters
+and Adam moments back to the last snapshot, lowers the outer rate (``meta_lr``, Adam's rate or
+Reptile's step; the inner rates are part of what is learned and stay as set) and retries the same
+meta-batch. The decision is taken from all-reduced values, so every process takes the same one.
+Events go to the record's ``event`` field and ``summary.json["guard_events"]``; the lowered rate
+is kept in the checkpoint.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 import shutil
 import time
@@ -34,6 +43,7 @@ from nerfmeta.collection.generate import Collection, load_collection
 from nerfmeta.errors import ConfigError, NerfmetaError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model
+from nerfmeta.fit.guard import DivergenceGuard, GuardEvent
 from nerfmeta.init import save_init
 from nerfmeta.io import atomic_path, save_tensors, to_jsonable, write_json
 from nerfmeta.metrics import mse_to_psnr
@@ -57,7 +67,7 @@ METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
 CURVE = "query_psnr_vs_step.png"
 CHECKPOINT_FORMAT = "nerfmeta-meta-checkpoint-1"
-RESUMABLE_CHANGES = ("meta_steps", "checkpoint_every", "eval_tasks", "device")
+RESUMABLE_CHANGES = ("meta_steps", "checkpoint_every", "eval_tasks", "device", "guard")
 """Fields a resumed run may change; any other difference from the saved config is refused."""
 
 
@@ -71,6 +81,7 @@ class MetaStepRecord:
         query_psnr: PSNR of the meta-batch's mean query MSE after adaptation.
         init_psnr: PSNR of the mean support MSE before adaptation (the initialisation's own).
         tasks: the scenes of the meta-batch, in slot order.
+        event: the divergence guard's rollbacks before this step succeeded, if any.
     """
 
     step: int
@@ -78,10 +89,14 @@ class MetaStepRecord:
     query_psnr: float
     init_psnr: float
     tasks: list[str] = field(default_factory=list)
+    event: str | None = None
 
     def as_json(self) -> dict[str, Any]:
-        return {"step": self.step, "time_s": round(self.time_s, 4), "query_psnr": round(self.query_psnr, 4),
-                "init_psnr": round(self.init_psnr, 4), "tasks": self.tasks}
+        out = {"step": self.step, "time_s": round(self.time_s, 4), "query_psnr": round(self.query_psnr, 4),
+               "init_psnr": round(self.init_psnr, 4), "tasks": self.tasks}
+        if self.event:
+            out["event"] = self.event
+        return out
 
 
 Progress = Callable[[MetaStepRecord], None]
@@ -92,8 +107,10 @@ Progress = Callable[[MetaStepRecord], None]
 
 
 def save_meta_checkpoint(path: str | os.PathLike, model: RadianceModel, optimizer: torch.optim.Optimizer | None,
-                         step: int, time_s: float, config: MetaConfig) -> None:
-    """Parameters, buffers, Adam moments, step and clock, atomically; refuses non-finite values."""
+                         step: int, time_s: float, config: MetaConfig, *, lr_guard_scale: float = 1.0,
+                         guard_events: Sequence[GuardEvent] = ()) -> None:
+    """Parameters, buffers, Adam moments, step, clock and the guard's rate factor and events, atomically;
+    refuses non-finite values."""
     tensors: dict[str, torch.Tensor] = {}
     for name, value in model.state_dict().items():
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
@@ -105,7 +122,7 @@ def save_meta_checkpoint(path: str | os.PathLike, model: RadianceModel, optimize
             for key, value in state.items():
                 tensors[f"optim.{names[idx]}.{key}"] = torch.as_tensor(value)
     meta = {"format": CHECKPOINT_FORMAT, "backbone": model.backbone, "structure": model.structure(), "algo": config.algo,
-            "step": step, "time_s": time_s}
+            "step": step, "time_s": time_s, "lr_guard_scale": lr_guard_scale, "guard_events": [e.as_json() for e in guard_events]}
     save_tensors(path, tensors, metadata={"nerfmeta": json.dumps(meta)})
 
 
@@ -116,6 +133,8 @@ class MetaCheckpoint:
     backbone: str
     model_state: dict[str, torch.Tensor]
     optim_state: dict[str, dict[str, torch.Tensor]]
+    lr_guard_scale: float = 1.0
+    guard_events: tuple[GuardEvent, ...] = ()
 
 
 def load_meta_checkpoint(path: str | os.PathLike) -> MetaCheckpoint:
@@ -136,7 +155,9 @@ def load_meta_checkpoint(path: str | os.PathLike) -> MetaCheckpoint:
         if key.startswith("optim."):
             name, _, what = key[len("optim."):].rpartition(".")
             optim.setdefault(name, {})[what] = value
-    return MetaCheckpoint(int(meta["step"]), float(meta["time_s"]), str(meta["backbone"]), model_state, optim)
+    events = tuple(GuardEvent.from_json(e) for e in meta.get("guard_events", []))
+    return MetaCheckpoint(int(meta["step"]), float(meta["time_s"]), str(meta["backbone"]), model_state, optim,
+                          float(meta.get("lr_guard_scale", 1.0)), events)
 
 
 def restore(model: RadianceModel, optimizer: torch.optim.Optimizer | None, ckpt: MetaCheckpoint, path: Path) -> None:
@@ -261,15 +282,29 @@ def build_outer_optimizer(model: RadianceModel, config: MetaConfig) -> torch.opt
 # Meta-training
 
 
-def meta_step(model: RadianceModel, optimizer: torch.optim.Optimizer | None, sampler: TaskSampler, step: int,
-              config: MetaConfig, lrs: dict[str, float], background: torch.Tensor, dist: DistContext = SINGLE,
-              ) -> tuple[float, float, list[str]]:
-    """One outer step of ``config.algo`` over meta-batch ``step``; this process takes its slots.
+@dataclass
+class MetaDirection:
+    """The all-reduced outcome of one meta-batch, before the outer update.
 
-    Returns:
-        the meta-batch's mean query MSE after adaptation, mean support MSE before it, and the
-        names of this process's tasks.
+    Attributes:
+        mean: per parameter (its shape), the mean over the meta-batch of the meta-gradient
+            (maml, fomaml) or of ``theta' - theta`` (reptile).
+        query_mse: the meta-batch's mean query MSE after adaptation.
+        init_mse: its mean support MSE before adaptation.
+        tasks: the names of this process's tasks.
+        finite: every value above is finite.
     """
+
+    mean: list[torch.Tensor]
+    query_mse: float
+    init_mse: float
+    tasks: list[str]
+    finite: bool
+
+
+def meta_direction(model: RadianceModel, sampler: TaskSampler, step: int, config: MetaConfig, lrs: dict[str, float],
+                   background: torch.Tensor, dist: DistContext = SINGLE) -> MetaDirection:
+    """Adapt to the tasks of meta-batch ``step`` (this process's slots) and all-reduce their mean direction."""
     params = list(model.parameters())
     meta = meta_wrapper(model, config.engine, lrs, first_order=config.algo != "maml")
     total = [torch.zeros_like(p) for p in params]
@@ -285,18 +320,80 @@ def meta_step(model: RadianceModel, optimizer: torch.optim.Optimizer | None, sam
     flat = torch.cat([t.reshape(-1) for t in total] + [torch.tensor([query_sum, init_sum], dtype=total[0].dtype, device=total[0].device)])
     dist.all_reduce_sum_(flat)
     flat /= config.meta_batch
-    if not bool(torch.isfinite(flat).all()):
-        raise NerfmetaError(f"meta-step {step + 1}: the meta-gradient is not finite; lower --inner-lr or --meta-lr")
-    mean = list(torch.split(flat[:-2], [p.numel() for p in params]))
+    mean = [m.view_as(p) for m, p in zip(torch.split(flat[:-2], [p.numel() for p in params]), params)]
+    return MetaDirection(mean, float(flat[-2]), float(flat[-1]), [t.name for t in tasks], bool(torch.isfinite(flat).all()))
+
+
+def apply_meta_update(model: RadianceModel, optimizer: torch.optim.Optimizer | None, mean: Sequence[torch.Tensor],
+                      config: MetaConfig, lr_scale: float = 1.0) -> None:
+    """The outer update with rate ``config.outer_lr * lr_scale``: a Reptile step, or an Adam step on ``mean`` as the gradient."""
+    params = list(model.parameters())
     with torch.no_grad():
         if optimizer is None:
-            reptile_update(params, [m.view_as(p) for m, p in zip(mean, params)], config.outer_lr)
+            reptile_update(params, mean, config.outer_lr * lr_scale)
         else:
+            for g in optimizer.param_groups:
+                g["lr"] = config.outer_lr * lr_scale
             for p, m in zip(params, mean):
-                p.grad = m.view_as(p).clone()
+                p.grad = m.clone()
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-    return float(flat[-2]), float(flat[-1]), [t.name for t in tasks]
+
+
+_META_HINT = "lower --inner-lr or --meta-lr"
+
+
+def _not_finite(d: MetaDirection) -> str:
+    """What was not finite in a meta-batch's outcome, for the error message."""
+    return f"the query loss is {d.query_mse}" if not math.isfinite(d.query_mse) else "the meta-gradient is not finite"
+
+
+def meta_step(model: RadianceModel, optimizer: torch.optim.Optimizer | None, sampler: TaskSampler, step: int,
+              config: MetaConfig, lrs: dict[str, float], background: torch.Tensor, dist: DistContext = SINGLE,
+              ) -> tuple[float, float, list[str]]:
+    """One unguarded outer step of ``config.algo`` over meta-batch ``step``; this process takes its slots.
+
+    Returns:
+        the meta-batch's mean query MSE after adaptation, mean support MSE before it, and the
+        names of this process's tasks.
+
+    Raises:
+        NerfmetaError: the meta-gradient is not finite (nothing was updated).
+    """
+    d = meta_direction(model, sampler, step, config, lrs, background, dist)
+    if not d.finite:
+        raise NerfmetaError(f"meta-step {step + 1}: {_not_finite(d)}; {_META_HINT}")
+    apply_meta_update(model, optimizer, d.mean, config)
+    return d.query_mse, d.init_mse, d.tasks
+
+
+def guarded_meta_step(model: RadianceModel, optimizer: torch.optim.Optimizer | None, sampler: TaskSampler, step: int,
+                      config: MetaConfig, lrs: dict[str, float], background: torch.Tensor, guard: DivergenceGuard,
+                      dist: DistContext = SINGLE) -> tuple[MetaDirection, list[GuardEvent]]:
+    """:func:`meta_step` under ``guard``: a bad meta-batch is rolled back to the snapshot and retried.
+
+    Returns:
+        the accepted meta-batch's outcome and the rollbacks it took (empty when the first try was good).
+
+    Raises:
+        NerfmetaError: the guard is off and the meta-gradient is not finite, or the guard gave up.
+    """
+    events: list[GuardEvent] = []
+    while True:
+        d = meta_direction(model, sampler, step, config, lrs, background, dist)
+        if not d.finite:
+            if not guard.config.enabled:
+                raise NerfmetaError(f"meta-step {step + 1}: {_not_finite(d)}; {_META_HINT}, or turn the divergence guard on")
+            bad = "nan query loss" if math.isnan(d.query_mse) else "inf query loss" if math.isinf(d.query_mse) \
+                else "non-finite meta-gradient"
+        else:
+            bad = guard.check_loss(d.query_mse, step + 1, _META_HINT)
+        if bad is None:
+            break
+        events.append(guard.rollback(step + 1, bad, model, optimizer, _META_HINT))
+    guard.accept(d.query_mse, step, model, optimizer)  # before the update: the snapshot holds checked values
+    apply_meta_update(model, optimizer, d.mean, config, guard.lr_scale)
+    return d, events
 
 
 def meta_train(
@@ -337,14 +434,14 @@ def meta_train(
     optimizer = build_outer_optimizer(model, config)
     lrs = inner_lrs(model, *config.inner_lr_resolved)
 
-    def prepare() -> tuple[int, float]:
+    def prepare() -> tuple[int, float, float, list[dict[str, Any]]]:
         ckpt = prepare_run_dir(out, config, resume=resume, overwrite=overwrite)
         if ckpt is None:
-            return 0, 0.0
+            return 0, 0.0, 1.0, []
         restore(model, optimizer, ckpt, out / CHECKPOINT)
-        return ckpt.step, ckpt.time_s
+        return ckpt.step, ckpt.time_s, ckpt.lr_guard_scale, [e.as_json() for e in ckpt.guard_events]
 
-    start, time_s = dist.broadcast_object(dist.on_main(prepare))
+    start, time_s, guard_scale, guard_events = dist.broadcast_object(dist.on_main(prepare))
     if resume and not dist.is_main:  # rank 0 has checked the checkpoint: the same file loads here
         restore(model, optimizer, load_meta_checkpoint(out / CHECKPOINT), out / CHECKPOINT)
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
@@ -368,11 +465,15 @@ def meta_train(
     log.info("meta-training %s/%s on %d scenes, %d process(es), from step %d", config.backbone, config.algo,
              len(train_records), dist.world_size, start)
 
+    guard = DivergenceGuard(config.guard, lr_scale=guard_scale, events=[GuardEvent.from_json(e) for e in guard_events],
+                            what="meta-train")
+    guard.retake(start, model, optimizer)
     metrics = open(out / METRICS, "a", encoding="utf-8") if dist.is_main else None
     try:
         for step in range(start, config.meta_steps):
             t0 = time.perf_counter()
-            query_mse, init_mse, _ = meta_step(model, optimizer, sampler, step, config, lrs, background, dist)
+            d, rollbacks = guarded_meta_step(model, optimizer, sampler, step, config, lrs, background, guard, dist)
+            query_mse, init_mse = d.query_mse, d.init_mse
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             time_s += time.perf_counter() - t0
@@ -380,20 +481,24 @@ def meta_train(
             if not dist.is_main:
                 continue
             names = [sampler.scenes[i].record.name for i in sampler.scene_indices(step, config.meta_batch)]
-            record = MetaStepRecord(done, time_s, float(mse_to_psnr(query_mse)), float(mse_to_psnr(init_mse)), names)
+            record = MetaStepRecord(done, time_s, float(mse_to_psnr(query_mse)), float(mse_to_psnr(init_mse)), names,
+                                    "; ".join(e.message() for e in rollbacks) or None)
             metrics.write(json.dumps(record.as_json()) + "\n")
             metrics.flush()
             if progress is not None:
                 progress(record)
             if config.checkpoint_every > 0 and done % config.checkpoint_every == 0 and done < config.meta_steps:
-                save_meta_checkpoint(out / CHECKPOINT, model, optimizer, done, time_s, config)
+                save_meta_checkpoint(out / CHECKPOINT, model, optimizer, done, time_s, config,
+                                     lr_guard_scale=guard.lr_scale, guard_events=guard.events)
     finally:
         if metrics is not None:
             metrics.close()
 
     def finish() -> dict[str, Any]:
-        save_meta_checkpoint(out / CHECKPOINT, model, optimizer, max(start, config.meta_steps), time_s, config)
-        return write_outputs(out, config, model, coll, train_records, eval_records, lrs, time_s, dist.world_size, background)
+        save_meta_checkpoint(out / CHECKPOINT, model, optimizer, max(start, config.meta_steps), time_s, config,
+                             lr_guard_scale=guard.lr_scale, guard_events=guard.events)
+        return write_outputs(out, config, model, coll, train_records, eval_records, lrs, time_s, dist.world_size, background,
+                             guard_events=guard.events)
 
     summary = dist.on_main(finish)
     dist.barrier()
@@ -402,7 +507,7 @@ def meta_train(
 
 def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Collection, train_records: Sequence,
                   eval_records: Sequence, lrs: dict[str, float], time_s: float, world_size: int,
-                  background: torch.Tensor) -> dict[str, Any]:
+                  background: torch.Tensor, *, guard_events: Sequence[GuardEvent] = ()) -> dict[str, Any]:
     """The initialisation (``nerfmeta.init`` format), the held-out evaluation, the curve and ``summary.json``."""
     records = read_metrics(out / METRICS)
     last = records[-10:]
@@ -439,6 +544,7 @@ def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Col
         "time_s": round(time_s, 3),
         "world_size": world_size,
         "n_parameters": sum(p.numel() for p in model.parameters()),
+        "guard_events": [e.as_json() for e in guard_events],
     }
     save_init(out, model, "meta", summary)
     plot_query_curve(records, out / CURVE, title=f"{config.backbone} {config.algo}: {len(train_records)} scenes, "

@@ -1,6 +1,6 @@
 """Time-budgeted fits on NeRF-synthetic lego at 100 x 100, recorded in BENCHMARKS.md.
 
-Workload: ``nerfmeta fit LEGO --downscale 8 --time-budget BUDGET`` (100 views of 800 x 800 read at
+Workload: ``nerfmeta fit LEGO --init scratch --downscale 8 --time-budget BUDGET`` (100 views of 800 x 800 read at
 100 x 100; the loader holds out every 8th view, 0, 8, ..., 96, as the 13 test views and trains on
 the other 87), ``--eval-every 0 --checkpoint-every 0`` so that only the final evaluation on all
 13 test views runs. Each run is a fresh ``python -m nerfmeta fit`` process (so ``peak_rss_mb`` is
@@ -52,7 +52,7 @@ INTRO = [
 
 
 def fit_command(lego: Path, out: Path, args: argparse.Namespace, seed: int) -> list[str]:
-    cmd = [str(lego), "--out", str(out), "--backbone", args.backbone, "--downscale", "8", "--time-budget", f"{args.budget:g}",
+    cmd = [str(lego), "--out", str(out), "--init", "scratch", "--backbone", args.backbone, "--downscale", "8", "--time-budget", f"{args.budget:g}",
            "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed)]
     if args.batch_rays:
         cmd += ["--batch-rays", str(args.batch_rays)]

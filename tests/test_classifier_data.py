@@ -15,7 +15,6 @@ from classifier.inputs import image_premultiplied, read_scene_views
 from nerfmeta.data import load_scene
 from nerfmeta.errors import SceneError
 
-torch.set_num_threads(1)
 
 
 def _rgba(h: int = 8, w: int = 8) -> torch.Tensor:

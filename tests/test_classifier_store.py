@@ -23,7 +23,6 @@ from classifier.store import (
 )
 from nerfmeta.errors import ConfigError, NerfmetaError
 
-torch.set_num_threads(1)
 CATS = ("chair", "mug", "table")
 
 

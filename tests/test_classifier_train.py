@@ -20,7 +20,6 @@ from nerfmeta.cli import main
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.errors import ConfigError
 
-torch.set_num_threads(1)
 TINY = TrainConfig(input_size=16, batch_size=4, epochs=1, augment=NO_AUGMENT)
 
 

@@ -20,15 +20,6 @@ from nerfmeta.errors import ConfigError
 SMALL = CollectionConfig(scenes_per_category=1, views=4, test_views=2, resolution=24, seed=3)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Render on one torch thread, as the CLI does (far faster on a shared, busy machine)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def files_of(root: Path) -> dict[str, bytes]:
     return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 

@@ -15,14 +15,6 @@ from nerfmeta.render.cameras import look_at
 from nerfmeta.render.rays import camera_rays, pixel_grid
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Run torch on one thread, as the CLI does (far faster on a shared, busy machine)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 RADIUS = 0.5
 AABB = torch.tensor([[-0.6] * 3, [0.6] * 3])
 

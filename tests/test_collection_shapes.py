@@ -26,14 +26,6 @@ from nerfmeta.collection.shapes import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Run torch on one thread, as the CLI does (far faster on a shared, busy machine)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 SEEDS = (0, 1, 2)
 
 

@@ -19,16 +19,6 @@ BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 WHITE = torch.ones(3)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Run this file single-threaded: its tensors are tiny, and on a shared 2-core machine
-    intra-op threads only contend (the fitting test goes from ~1 s to 10 s or more)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _model(config=TINY, bounds=BOX, seed=0):
     return NerfMLP(config, bounds, generator=torch.Generator().manual_seed(seed))
 

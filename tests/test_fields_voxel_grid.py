@@ -34,18 +34,9 @@ from nerfmeta.render.sampling import fixed_step_samples
 from nerfmeta.render.volume import render_weights
 
 SMALL = VoxelGridConfig(coarse_iters=40, coarse_num_voxels=16**3, num_voxels=24**3, growth_steps=(20,),
-                        occupancy_every=10, mlp_width=16, feature_dim=4)
+                        occupancy_every=10, mlp_width=16, feature_dim=4, view_dependent=True)  # the MLP path
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 WHITE = torch.ones(3)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Single-threaded: the tensors are tiny and a shared 2-core machine only adds contention."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

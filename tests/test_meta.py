@@ -31,14 +31,6 @@ TINY_NERF = NerfMLPConfig(pos_freqs=2, dir_freqs=1, depth=2, width=16, skips=(),
 BG = torch.ones(3)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def tiny_model(dtype: torch.dtype = torch.float32, seed: int = 0) -> NerfMLP:
     gen = torch.Generator().manual_seed(seed)
     model = NerfMLP(TINY_NERF, torch.tensor(CANONICAL_BOUNDS), generator=gen)

@@ -21,14 +21,6 @@ FAST = ["--meta-batch", "2", "--support-rays", "64", "--query-rays", "64", "--in
 FAST_RENDER = RenderConfig(supersample=1, max_steps=48)  # the images only need to differ per scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """2 categories x 3 scenes (2 train + 1 test each), 16 px, 4 views."""

@@ -24,14 +24,6 @@ from nerfmeta.metrics import (
 )
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The tensors here are tiny: on a shared 2-core machine extra threads only add contention."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
 # ------------------------------------------------------------------------------ MSE and PSNR
 
 

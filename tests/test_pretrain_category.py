@@ -25,14 +25,6 @@ GRID_TINY = {"num_voxels": 12**3, "coarse_iters": 3, "coarse_num_voxels": 8**3, 
              "mlp_depth": 2, "feature_dim": 2}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def collection(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("tiny_collection") / "col"

@@ -24,19 +24,11 @@ TINY = CollectionConfig(categories=("chair", "mug"), scenes_per_category=3, view
 MODELS = {
     "nerf": {"depth": 2, "width": 32, "skips": [], "n_samples": 16, "pos_freqs": 4, "dir_freqs": 2, "lr": 0.01},
     "grid": {"num_voxels": 16**3, "coarse_iters": 0, "growth_steps": [2], "mlp_width": 8,
-             "mlp_depth": 2, "feature_dim": 2},
+             "mlp_depth": 2, "feature_dim": 2, "view_dependent": True},  # the colour MLP, so --freeze 2 exists
 }
 SCRATCH_ONLY = {"nerf": {}, "grid": {"coarse_iters": 10, "coarse_num_voxels": 10**3}}  # a scratch grid's usual coarse stage
 FAST = ["--iters", "6", "--batch-rays", "64", "--eval-every", "0", "--checkpoint-every", "0"]
 CPU = torch.device("cpu")
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -26,12 +26,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="COLOUR",
         help="white, black or R,G,B in [0, 1]: what RGBA images are composited on (default white)",
     )
+    parser.add_argument("--no-normalize", dest="normalize", action="store_false",
+                        help="load the scene exactly as written, without moving a scene of extreme scale or far from "
+                        "the origin into range (the report's normalisation line says what was applied)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    options = LoadOptions(downscale=args.downscale, background=parse_background(args.background))
+    options = LoadOptions(downscale=args.downscale, background=parse_background(args.background), normalize=args.normalize)
     summary = inspect_scene(args.scene, options, out=args.out)
     if args.json:
         print(json.dumps(to_jsonable(summary), indent=2))

@@ -27,7 +27,8 @@ from nerfmeta.data.images import (
     image_shape,
     to_float_images,
 )
-from nerfmeta.data.scene import Scene
+from nerfmeta.data.normalize import normalization_for
+from nerfmeta.data.scene import Normalization, Scene
 from nerfmeta.errors import ConfigError, SceneError
 
 HOLDOUT_EVERY = 8
@@ -45,6 +46,9 @@ class LoadOptions:
     """RGB in [0, 1] that images with an alpha channel are composited on."""
     max_pixels: int = DEFAULT_MAX_PIXELS
     """Refuse any image with more pixels than this (checked from the header, before decoding)."""
+    normalize: bool = True
+    """Bring a scene of extreme scale or far from the origin into range (a similarity transform,
+    the identity for scenes already in range; rule in :mod:`nerfmeta.data.normalize`)."""
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.downscale) or self.downscale < 1:
@@ -153,14 +157,15 @@ def near_far(near: Any, far: Any, *, where: str) -> tuple[float, float]:
 
 
 def parse_aabb(value: Any, *, where: str) -> torch.Tensor:
-    """A (2, 3) float32 box ``[[min xyz], [max xyz]]`` with min < max."""
+    """A (2, 3) float64 box ``[[min xyz], [max xyz]]`` with min < max (float64 so that a box far from
+    the origin keeps its size through load-time normalisation; the scene stores float32)."""
     try:
         box = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise SceneError(f"{where}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]") from err
     if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[0] < box[1]).all():
         raise SceneError(f"{where}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
-    return torch.tensor(box, dtype=torch.float32)
+    return torch.tensor(box, dtype=torch.float64)
 
 
 def parse_category(value: Any, *, where: str) -> str | None:
@@ -324,6 +329,10 @@ def build_scene(
 ) -> Scene:
     """Assemble a :class:`Scene`, computing bounds from the camera frusta unless ``aabb`` is given.
 
+    Poses, ``near``/``far`` and ``aabb`` are in the file's frame; unless ``options.normalize`` is
+    off, the scene is then moved into range by :func:`~nerfmeta.data.normalize.normalization_for`
+    (the identity for scenes already in range) and the transform is kept in ``Scene.normalization``.
+
     Args:
         intrinsics: (n, 4) ``(fx, fy, cx, cy)`` for the images as read (after downscaling).
     """
@@ -334,16 +343,21 @@ def build_scene(
     if not splits.get("train"):
         raise SceneError(f"{source}: no training views (a scene needs at least 2 views)")
     if aabb is None:
-        bounds = frustum_bounds(poses_t, intrinsics.double(), views.height, views.width, near, far).float()
+        bounds = frustum_bounds(poses_t, intrinsics.double(), views.height, views.width, near, far)
     else:
-        bounds = aabb.float()
+        bounds = aabb.double()
+    norm = normalization_for(bounds, far) if options.normalize else Normalization()
+    if not norm.is_identity:
+        poses_t = norm.apply_poses(poses_t)
+        bounds = norm.apply_points(bounds)
+        near, far = near * norm.scale, far * norm.scale
     return Scene(
         images=views.images,
         poses=poses_t.float(),
         intrinsics=intrinsics.float(),
         near=float(near),
         far=float(far),
-        bounds=bounds,
+        bounds=bounds.float(),
         splits={k: tuple(int(i) for i in v) for k, v in splits.items()},
         holdout=holdout,
         source=source,
@@ -353,4 +367,5 @@ def build_scene(
         alphas=views.alphas,
         image_names=tuple(image_names),
         downscale=float(downscale),
+        normalization=norm,
     )

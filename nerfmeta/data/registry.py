@@ -80,6 +80,7 @@ def load_scene(
     downscale: float = 1.0,
     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
     max_pixels: int = DEFAULT_MAX_PIXELS,
+    normalize: bool = True,
 ) -> Scene:
     """Read a scene in any supported format.
 
@@ -88,12 +89,14 @@ def load_scene(
         downscale: reduce images by this factor (>= 1, area filtering); intrinsics follow.
         background: RGB in [0, 1] that RGBA images are composited on.
         max_pixels: refuse images with more pixels than this.
+        normalize: move a scene of extreme scale or far from the origin into range (the identity
+            for scenes already in range; see :mod:`nerfmeta.data.normalize`).
 
     Raises:
         ConfigError: a bad option. SceneError: a bad or unsupported scene (one line, naming the
             file and what is wrong).
     """
-    options = LoadOptions(downscale=downscale, background=background, max_pixels=max_pixels)
+    options = LoadOptions(downscale=downscale, background=background, max_pixels=max_pixels, normalize=normalize)
     return load_scene_with(path, options)
 
 

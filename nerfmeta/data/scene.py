@@ -8,6 +8,9 @@ Conventions used everywhere in nerfmeta:
   ``(i + 0.5, j + 0.5)``.
 - Images are float32 RGB in [0, 1], already composited on ``background``.
 - ``near``/``far`` are distances along normalised ray directions.
+- Positions, ``near``/``far`` and ``bounds`` are in the *loaded* frame: the file's frame after the
+  scene's :class:`Normalization` (identity for scenes already in range; see
+  :mod:`nerfmeta.data.normalize`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,51 @@ from pathlib import Path
 import torch
 
 SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """The similarity transform from a scene file's frame to the loaded frame.
+
+    ``x_loaded = scale * x_file + offset`` for points; lengths (``near``, ``far``, depths) are
+    multiplied by ``scale``; rotations are unchanged. The default is the identity.
+
+    Attributes:
+        scale: positive factor applied to every length.
+        offset: translation added after scaling, in loaded units.
+    """
+
+    scale: float = 1.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @property
+    def is_identity(self) -> bool:
+        return self.scale == 1.0 and all(v == 0.0 for v in self.offset)
+
+    def apply_points(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) file-frame points -> loaded frame, in the dtype of ``points``."""
+        offset = torch.tensor(self.offset, dtype=points.dtype, device=points.device)
+        return points * self.scale + offset
+
+    def invert_points(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) loaded-frame points (e.g. a model's box) -> the file's frame."""
+        offset = torch.tensor(self.offset, dtype=points.dtype, device=points.device)
+        return (points - offset) / self.scale
+
+    def apply_poses(self, poses: torch.Tensor) -> torch.Tensor:
+        """(..., 4, 4) file-frame camera-to-world matrices -> loaded frame (rotation kept)."""
+        out = poses.clone()
+        out[..., :3, 3] = self.apply_points(poses[..., :3, 3])
+        return out
+
+    def invert_poses(self, poses: torch.Tensor) -> torch.Tensor:
+        """(..., 4, 4) loaded-frame camera-to-world matrices -> the file's frame."""
+        out = poses.clone()
+        out[..., :3, 3] = self.invert_points(poses[..., :3, 3])
+        return out
+
+    def as_json(self) -> dict:
+        return {"scale": self.scale, "offset": list(self.offset)}
 
 
 @dataclass(frozen=True)
@@ -40,6 +88,8 @@ class Scene:
         alphas: (n_views, H, W) float32 alpha in [0, 1] when the images had one, else None.
         image_names: one name per view, for reports.
         downscale: the factor the images were reduced by when read.
+        normalization: the transform from the file's frame to the loaded one (poses, near, far
+            and bounds are already transformed); the identity unless the loader applied one.
     """
 
     images: torch.Tensor
@@ -57,6 +107,7 @@ class Scene:
     alphas: torch.Tensor | None = None
     image_names: tuple[str, ...] = field(default_factory=tuple)
     downscale: float = 1.0
+    normalization: Normalization = field(default_factory=Normalization)
 
     @property
     def n_views(self) -> int:

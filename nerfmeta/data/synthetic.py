@@ -87,30 +87,55 @@ def render_spheres(
     return torch.where(hit.unsqueeze(-1), rgb, torch.zeros_like(rgb)), hit
 
 
-def tiny_cameras(n: int, offset: float, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Poses (n, 4, 4) float64 on the upper hemisphere looking at the origin, and intrinsics (4,)."""
-    eyes = CAMERA_RADIUS * fibonacci_directions(n, offset=offset)
+def tiny_cameras(
+    n: int,
+    offset: float,
+    size: int,
+    *,
+    height: int | None = None,
+    radius: float = CAMERA_RADIUS,
+    angle_x: float = CAMERA_ANGLE_X,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Poses (n, 4, 4) float64 on the upper hemisphere looking at the origin, and intrinsics (4,).
+
+    Args:
+        n: number of cameras; offset: the Fibonacci spiral's offset.
+        size: image width in pixels; height: image height (default: ``size``).
+        radius: distance of the cameras from the origin.
+        angle_x: horizontal field of view in radians (``fx = fy``, principal point at the centre).
+    """
+    height = size if height is None else height
+    eyes = radius * fibonacci_directions(n, offset=offset)
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     poses = look_at(eyes, torch.zeros(3, dtype=torch.float64), up)
-    focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    intrinsics = torch.tensor([focal, focal, size / 2, size / 2], dtype=torch.float64)
+    focal = 0.5 * size / math.tan(0.5 * angle_x)
+    intrinsics = torch.tensor([focal, focal, size / 2, height / 2], dtype=torch.float64)
     return poses, intrinsics
 
 
-def render_views(poses: torch.Tensor, intrinsics: torch.Tensor, size: int, seed: int) -> np.ndarray:
-    """(n, size, size, 4) uint8 RGBA renders of the spheres, 2x2 supersampled."""
+def render_views(
+    poses: torch.Tensor, intrinsics: torch.Tensor, size: int, seed: int, *, height: int | None = None
+) -> np.ndarray:
+    """(n, height, size, 4) uint8 RGBA renders of the spheres, 2x2 supersampled.
+
+    Args:
+        poses: (n, 4, 4) camera-to-world; intrinsics: (4,) or (n, 4).
+        size: image width in pixels; height: image height (default: ``size``).
+        seed: jitters the sphere positions (:func:`tiny_spheres`).
+    """
+    height = size if height is None else height
     centres, radii, albedo = tiny_spheres(seed)
     sub = torch.tensor(_SUBSAMPLES, dtype=torch.float64)
-    base = torch.arange(size, dtype=torch.float64)
-    ys = (base[:, None] + sub[None, :]).reshape(-1)  # (size * 2,) sample rows
-    xs = ys.clone()
+    ys = (torch.arange(height, dtype=torch.float64)[:, None] + sub[None, :]).reshape(-1)  # (2 height,) sample rows
+    xs = (torch.arange(size, dtype=torch.float64)[:, None] + sub[None, :]).reshape(-1)  # (2 size,) sample columns
     yy, xx = torch.meshgrid(ys, xs, indexing="ij")
-    pixels = torch.stack([xx, yy], dim=-1)  # (2 size, 2 size, 2)
-    origins, dirs = camera_rays(poses[:, None, None], intrinsics, pixels)
+    pixels = torch.stack([xx, yy], dim=-1)  # (2 height, 2 size, 2)
+    intr = intrinsics if intrinsics.dim() == 1 else intrinsics[:, None, None]
+    origins, dirs = camera_rays(poses[:, None, None], intr, pixels)
     rgb, hit = render_spheres(origins, dirs, centres, radii, albedo)
     n = len(poses)
-    rgb = rgb.reshape(n, size, 2, size, 2, 3).sum(dim=(2, 4))
-    count = hit.reshape(n, size, 2, size, 2).sum(dim=(2, 4)).to(torch.float64)
+    rgb = rgb.reshape(n, height, 2, size, 2, 3).sum(dim=(2, 4))
+    count = hit.reshape(n, height, 2, size, 2).sum(dim=(2, 4)).to(torch.float64)
     colour = rgb / count.clamp(min=1.0).unsqueeze(-1)
     alpha = count / 4.0
     rgba = torch.cat([colour, alpha.unsqueeze(-1)], dim=-1)
@@ -126,7 +151,14 @@ def tiny_aabb(seed: int = 0, pad: float = 0.05) -> list[list[float]]:
 
 
 def write_tiny_scene(
-    folder: str | os.PathLike, *, n_train: int = 8, n_test: int = 4, size: int = 32, seed: int = 0
+    folder: str | os.PathLike,
+    *,
+    n_train: int = 8,
+    n_test: int = 4,
+    size: int = 32,
+    seed: int = 0,
+    height: int | None = None,
+    angle_x: float = CAMERA_ANGLE_X,
 ) -> Path:
     """Write the tiny analytic scene in the Blender format and return its folder.
 
@@ -137,17 +169,22 @@ def write_tiny_scene(
         folder: destination (created).
         n_train: training views (>= 1).
         n_test: test views (>= 0; with 0 no ``transforms_test.json`` is written).
-        size: image width and height in pixels.
+        size: image width (and, unless ``height`` is given, height) in pixels.
         seed: jitters the sphere positions.
+        height: image height in pixels when it differs from the width.
+        angle_x: horizontal field of view in radians (0 < angle_x < pi).
     """
-    if n_train < 1 or n_test < 0 or size < 1:
-        raise ValueError(f"need n_train >= 1, n_test >= 0, size >= 1; got {n_train}, {n_test}, {size}")
+    height = size if height is None else height
+    if n_train < 1 or n_test < 0 or size < 1 or height < 1:
+        raise ValueError(f"need n_train >= 1, n_test >= 0, size >= 1, height >= 1; got {n_train}, {n_test}, {size}, {height}")
+    if not 0.0 < angle_x < math.pi:
+        raise ValueError(f"angle_x must be in (0, pi) radians, got {angle_x}")
     splits = {}
     for split, n, offset in (("train", n_train, 0.5), ("test", n_test, 0.2)):
         if n == 0:
             continue
-        poses, intrinsics = tiny_cameras(n, offset, size)
-        splits[split] = (render_views(poses, intrinsics, size, seed), poses)
+        poses, intrinsics = tiny_cameras(n, offset, size, height=height, angle_x=angle_x)
+        splits[split] = (render_views(poses, intrinsics, size, seed, height=height), poses)
     extra = {"near": NEAR, "far": FAR, "category": CATEGORY, "aabb": tiny_aabb(seed)}
-    write_blender_scene(folder, splits, CAMERA_ANGLE_X, extra=extra)
+    write_blender_scene(folder, splits, angle_x, extra=extra)
     return Path(folder)

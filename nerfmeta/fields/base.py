@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from torch import nn
@@ -58,16 +58,38 @@ class ParamGroup:
 
 
 @dataclass(frozen=True)
+class Decision:
+    """A per-scene choice made from the data during a fit (recorded in ``summary.json``).
+
+    Attributes:
+        name: what was decided, e.g. ``"view_dependent"``.
+        value: the choice (JSON-able: a bool, a number, a string).
+        reason: one line for the logs and ``metrics.jsonl``.
+        evidence: the figures the choice was made from (JSON-able).
+    """
+
+    name: str
+    value: Any
+    reason: str
+    evidence: dict[str, Any] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"value": self.value, "reason": self.reason, "evidence": dict(self.evidence)}
+
+
+@dataclass(frozen=True)
 class StepEvent:
     """What a model did at the start of an iteration (see :meth:`RadianceModel.begin_step`).
 
     Attributes:
         params_changed: parameters were added, removed or resized: the optimiser must be rebuilt.
         message: a short human-readable note for the logs (``""`` when nothing happened).
+        decisions: per-scene choices the model made in this step (e.g. the box of a new stage).
     """
 
     params_changed: bool = False
     message: str = ""
+    decisions: tuple[Decision, ...] = ()
 
 
 class RadianceModel(nn.Module, abc.ABC):
@@ -104,6 +126,29 @@ class RadianceModel(nn.Module, abc.ABC):
     def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
         """Called before iteration ``step`` (0-based). Default: nothing changes."""
         return StepEvent()
+
+    def stage_ending(self, step: int) -> str | None:
+        """The name of the stage that ends before iteration ``step``, else None (the default: one stage).
+
+        A model with stages returns its current stage's name when ``begin_step(step)`` would start
+        the next one. The fit loop then evaluates the model when it has a target PSNR (a stage
+        that already meets it ends the fit, so the next stage is never built), and otherwise calls
+        :meth:`decide` before ``begin_step``.
+        """
+        return None
+
+    def decide(self, draw_rays: Callable[[int], RayBatch], *, background: torch.Tensor) -> list[Decision]:
+        """Make the choices due at the end of the current stage from training data; default: none.
+
+        Args:
+            draw_rays: ``draw_rays(n)`` returns ``n`` random training rays with their target colours
+                (seeded, independent of the fit's own ray stream).
+            background: (3,) RGB the scene is composited on.
+
+        Returns:
+            The decisions made (the model has applied them to itself).
+        """
+        return []
 
     def regularization(self) -> torch.Tensor | None:
         """An extra loss term added to the photometric loss, or None."""

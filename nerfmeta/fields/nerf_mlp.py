@@ -180,11 +180,10 @@ class NerfMLP(RadianceModel):
     def _raw(self, points: torch.Tensor, directions: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw density (...,) before activation and colour (..., 3) in [0, 1]; see :meth:`query`."""
         x = positional_encoding(normalize_to_box(points, self.bounds), self.config.pos_freqs)
-        h = x
-        for i, layer in enumerate(self.trunk):
-            if i in self.config.skips:
-                h = torch.cat([h, x], dim=-1)
-            h = F.relu(layer(h))
+        k = self._frozen_prefix(x)
+        with torch.no_grad():  # frozen leading layers: their outputs need no graph
+            h = self._trunk(x, x, 0, k)
+        h = self._trunk(h, x, k, self.config.depth)
         raw_sigma = self.density(h)[..., 0]
         if self.config.view_dependent:
             if directions is None:
@@ -193,6 +192,30 @@ class NerfMLP(RadianceModel):
             d = d.expand(*h.shape[:-1], d.shape[-1])
             h = F.relu(self.view[0](torch.cat([self.feature(h), d], dim=-1)))
         return raw_sigma, torch.sigmoid(self.rgb(h))
+
+    def _trunk(self, h: torch.Tensor, x: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        """Trunk layers ``start .. stop - 1`` applied to ``h`` (``x``: the encoded position, for the skips)."""
+        for i in range(start, stop):
+            if i in self.config.skips:
+                h = torch.cat([h, x], dim=-1)
+            h = F.relu(self.trunk[i](h))
+        return h
+
+    def _frozen_prefix(self, x: torch.Tensor) -> int:
+        """How many leading trunk layers can run without autograd: frozen parameters, an input needing no gradient.
+
+        Frozen layers (``freeze_first``) on an input without gradient already build no graph (autograd
+        records nothing when no input needs a gradient); running them under ``no_grad`` makes that explicit.
+        Parameters passed through ``torch.func.functional_call`` (meta-learning) count as they are passed.
+        """
+        if not torch.is_grad_enabled() or x.requires_grad:
+            return 0
+        k = 0
+        for layer in self.trunk:
+            if layer.weight.requires_grad or layer.bias.requires_grad:
+                break
+            k += 1
+        return k
 
     def _activate(self, raw_sigma: torch.Tensor) -> torch.Tensor:
         if self.config.density_activation == "softplus":

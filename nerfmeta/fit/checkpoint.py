@@ -1,7 +1,8 @@
 """Checkpoints: one safetensors file holding the model, the optimiser and the RNG, with the
 fit state and model structure as JSON in its metadata, written atomically (temp file + rename),
 so a kill at any moment leaves either the previous checkpoint or the new one, never half of one.
-A checkpoint is only written from finite parameters: a NaN never reaches disk.
+A checkpoint is only written from finite parameters: a NaN never reaches disk. The divergence
+guard's learning-rate factor and events are kept, so a resumed fit continues with the lowered rates.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from safetensors import safe_open
 
 from nerfmeta.errors import NerfmetaError
 from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fit.guard import GuardEvent
 from nerfmeta.fit.loop import FitState
 from nerfmeta.io import save_tensors
 
@@ -62,6 +64,9 @@ def save_checkpoint(path: str | os.PathLike, model: RadianceModel, state: FitSta
         "time_s": state.time_s,
         "eval_time_s": state.eval_time_s,
         "last_test_psnr": state.last_test_psnr,
+        "decisions": state.decisions,
+        "lr_guard_scale": state.lr_guard_scale,
+        "guard_events": [e.as_json() for e in state.guard_events],
         "optimizer": optim_meta,
     }
     save_tensors(path, tensors, metadata={"nerfmeta": json.dumps(meta)})
@@ -92,6 +97,9 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
         rng_state=tensors.get("rng"),
         optimizer_state=optimizer_state,
         last_test_psnr=meta.get("last_test_psnr"),
+        decisions=meta.get("decisions", {}),
+        lr_guard_scale=float(meta.get("lr_guard_scale", 1.0)),
+        guard_events=[GuardEvent.from_json(e) for e in meta.get("guard_events", [])],
     )
     model_state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
     return Checkpoint(meta["backbone"], meta["structure"], model_state, state)

@@ -39,9 +39,16 @@ def render_view(
     return ViewRender(view, rgb, rays.target.reshape(h, w, 3).cpu(), samples / len(rays))
 
 
+MSE_FLOOR = 1e-10
+"""A view's MSE is floored here before conversion, so a perfect render reports 100 dB, not +inf (an
+empty scene rendered exactly as its background does that; +inf would make ``summary.json`` invalid JSON
+and every mean over views infinite)."""
+
+
 @dataclass(frozen=True)
 class EvalResult:
-    """Mean PSNR/SSIM over the rendered views (PSNR of the mean MSE per view, averaged in dB)."""
+    """Mean PSNR/SSIM over the rendered views (PSNR of the mean MSE per view, floored at
+    :data:`MSE_FLOOR`, averaged in dB)."""
 
     psnr: float
     ssim: float | None
@@ -65,7 +72,7 @@ def evaluate_views(
         renders = tuple(render_view(model, scene, v, background, chunk=chunk) for v in views)
     finally:
         model.train(was_training)
-    psnrs = [float(mse_to_psnr(((r.rgb - r.target) ** 2).mean())) for r in renders]
+    psnrs = [float(mse_to_psnr(((r.rgb - r.target) ** 2).mean().clamp(min=MSE_FLOOR))) for r in renders]
     ssims = [float(ssim(r.rgb, r.target)) for r in renders] if with_ssim else None
     spr = sum(r.samples_per_ray for r in renders) / max(1, len(renders))
     return EvalResult(

@@ -4,6 +4,16 @@ Differences between scratch, transfer and meta-initialised fits are data: the mo
 (its parameters and frozen layers) and the :class:`FitConfig`. Logging, progress bars and
 checkpoints are callbacks, never forks of the loop. Time is measured on the optimisation only:
 evaluation and checkpoint writing are excluded from ``time_s`` and reported separately.
+
+When a model ends a stage (:meth:`~nerfmeta.fields.base.RadianceModel.stage_ending`), the loop
+evaluates it if there is a target PSNR (a stage that meets the target ends the fit) and lets it make
+its per-scene decisions from training rays (:meth:`~nerfmeta.fields.base.RadianceModel.decide`).
+Decisions are logged, noted in the next ``StepRecord.event`` and kept in ``FitState.decisions``.
+
+A divergence guard (:mod:`nerfmeta.fit.guard`, ``FitConfig.guard``) checks every step's loss and
+gradients; a bad step is rolled back to the last good snapshot, the learning rates are lowered for
+the rest of the fit (``FitState.lr_guard_scale``, kept in checkpoints) and the step is tried again
+with fresh rays, so ``iters`` counts good steps (the time of bad ones still counts in ``time_s``).
 """
 
 from __future__ import annotations
@@ -17,8 +27,9 @@ from typing import Callable, Protocol, Sequence
 import torch
 
 from nerfmeta.data.scene import Scene
-from nerfmeta.fields.base import RadianceModel
-from nerfmeta.fit.evaluate import EvalResult, evaluate_views
+from nerfmeta.fields.base import Decision, RadianceModel
+from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
+from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
 from nerfmeta.metrics import mse_to_psnr
 
@@ -43,6 +54,8 @@ class FitConfig:
     """Learning rates decay exponentially to this fraction at the end (of iters or of the time budget)."""
     adam_eps: float = 1e-8
     """Adam's epsilon."""
+    adam_eps_density: float = 1e-15
+    """Adam's epsilon for parameter groups named ``density`` (the grids' density): their gradients scale with the initial alpha (about 1e-10 per voxel at alpha 1e-6), which an epsilon of 1e-8 damps to a standstill (see build_optimizer)."""
     eval_every: int = 500
     """Evaluate test PSNR every this many iterations (0: only at the end)."""
     eval_views: int = 4
@@ -51,11 +64,22 @@ class FitConfig:
     """Write a checkpoint every this many iterations (0: only at the end)."""
     chunk_rays: int = 16384
     """Rays rendered at once during evaluation."""
+    stage_end_eval: bool = True
+    """With a target PSNR, evaluate (like ``eval_every``) when the model ends a stage, so a stage that already meets the target ends the fit and the next is never built (False: scheduled evaluations only)."""
+    final_ssim: bool = True
+    """Compute SSIM at the final evaluation (``test_ssim``; False saves its time)."""
+    guard: GuardConfig = GuardConfig()
+    """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
+
+    def __post_init__(self) -> None:
+        # config.json holds the guard as a dict: accept one so a saved config loads back equal.
+        object.__setattr__(self, "guard", GuardConfig.coerce(self.guard))
 
 
 @dataclass
 class StepRecord:
-    """One logged iteration; ``test_psnr`` only where evaluated, ``event`` where the model changed."""
+    """One logged iteration; ``test_psnr`` only where evaluated, ``event`` where the model changed or the
+    divergence guard rolled back before the step succeeded; ``lr_scale`` includes the guard's factor."""
 
     iter: int
     time_s: float
@@ -77,7 +101,7 @@ class StepRecord:
 
 @dataclass
 class FitState:
-    """Everything needed to continue a fit exactly: iteration, clock, RNG and optimiser."""
+    """Everything needed to continue a fit exactly: iteration, clock, RNG, optimiser and the guard's lr factor."""
 
     step: int = 0
     time_s: float = 0.0
@@ -86,6 +110,12 @@ class FitState:
     optimizer_state: dict | None = None
     last_test_psnr: float | None = None
     stop_reason: str = ""
+    decisions: dict[str, dict] = field(default_factory=dict)
+    """Per-scene choices made so far, by name (:meth:`~nerfmeta.fields.base.Decision.as_json`)."""
+    lr_guard_scale: float = 1.0
+    """Learning-rate factor left by the divergence guard's rollbacks (1: none); kept across resumes."""
+    guard_events: list[GuardEvent] = field(default_factory=list)
+    """The divergence guard's rollbacks so far, oldest first."""
 
 
 class Callback(Protocol):
@@ -105,18 +135,33 @@ def build_optimizer(model: RadianceModel, config: FitConfig) -> torch.optim.Adam
     The fused implementation (one kernel per step instead of a dozen tensor ops per parameter;
     the same update) is used when every parameter is a floating-point CPU or CUDA tensor: on a
     2-core CPU it steps a 7-million-value voxel grid about four times faster.
+
+    Groups named ``density`` use ``config.adam_eps_density``. A post-activated density
+    ``softplus(raw + shift)`` has gradient ``sigmoid(raw + shift)`` in ``raw``, which at the start
+    is about the initial alpha per step, so the density grid's gradients shrink in proportion to
+    ``alpha_init``: on the tiny scene at alpha 1e-6 they are 1e-10 (median) to 1e-8 (max) per
+    voxel, and Adam's ``g / (sqrt(v) + eps)`` with eps 1e-8 moves a voxel a few percent of its
+    learning rate per step (the raw density rose 0.5 in 100 steps instead of 3.9). With 1e-15
+    (Instant-NGP's value) the step is scale-free again. The other groups keep ``adam_eps``: a tiny
+    epsilon on the colour grid and MLP cost 1.5 dB at alpha 1e-4 (noisy low-gradient voxels then
+    take full steps), on the density alone it cost nothing.
     """
     params = dict(model.named_parameters())
     groups = []
     for g in model.param_groups():
         ps = [params[n] for n in g.param_names if params[n].requires_grad]
         if ps:
-            groups.append({"params": ps, "lr": g.lr, "base_lr": g.lr, "name": g.name})
+            eps = config.adam_eps_density if g.name == "density" else config.adam_eps
+            groups.append({"params": ps, "lr": g.lr, "base_lr": g.lr, "name": g.name, "eps": eps})
     if not groups:
         raise ValueError("every parameter is frozen: nothing to optimise")
     tensors = [p for g in groups for p in g["params"]]
     fused = all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in tensors)
     return torch.optim.Adam(groups, eps=config.adam_eps, fused=fused)
+
+
+_DIVERGED_HINT = ("lower the learning rates (e.g. --set lr_density=..., --set lr=...) or check the scene "
+                  "(a NaN pixel or pose makes every step fail)")
 
 
 def lr_scale(config: FitConfig, step: int, time_s: float) -> float:
@@ -170,7 +215,8 @@ def fit(
 
     def final_eval() -> EvalResult:
         t_eval = time.perf_counter()
-        result = evaluate_views(model, scene, list(test_views), background, chunk=config.chunk_rays)
+        result = evaluate_views(model, scene, list(test_views), background, with_ssim=config.final_ssim,
+                                chunk=config.chunk_rays)
         state.eval_time_s += time.perf_counter() - t_eval
         state.last_test_psnr = result.psnr
         return result
@@ -179,6 +225,48 @@ def fit(
         state.rng_state = gen.get_state()
         state.optimizer_state = optimizer.state_dict()
 
+    evaluated_at = -1  # the step of the last intermediate evaluation
+
+    def partial_eval() -> float:
+        """Test PSNR on the first ``eval_views`` test views (an intermediate evaluation)."""
+        nonlocal evaluated_at
+        views = list(test_views) if config.eval_views <= 0 else list(test_views)[: config.eval_views]
+        t_eval = time.perf_counter()
+        ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays)
+        state.eval_time_s += time.perf_counter() - t_eval
+        state.last_test_psnr, evaluated_at = ev.psnr, state.step
+        return ev.psnr
+
+    def note_decisions(decisions: Sequence[Decision]) -> list[str]:
+        for d in decisions:
+            state.decisions[d.name] = d.as_json()
+            log.info("iter %d: %s", state.step, d.reason)
+        return [d.reason for d in decisions]
+
+    def end_of_stage(stage: str) -> tuple[bool, list[str]]:
+        """The model is about to leave ``stage``: does the fit stop here (target met), and what did the model decide?"""
+        if config.target_psnr is not None and config.stage_end_eval and test_views:
+            psnr = state.last_test_psnr if evaluated_at == state.step else partial_eval()
+            met = psnr >= config.target_psnr
+            reason = (f"end of the {stage} stage: test PSNR {psnr:.2f} dB {'>=' if met else '<'} target "
+                      f"{config.target_psnr:g} dB{', the fit ends here' if met else ''}")
+            evidence = {"test_psnr": round(psnr, 4), "target_psnr": config.target_psnr, "step": state.step}
+            note_decisions([Decision(f"stop_after_{stage}", met, reason, evidence)])
+            if met:
+                return True, []
+        # The evidence comes from its own seeded ray stream: deciding leaves the fit's rays unchanged.
+        probe = torch.Generator().manual_seed(config.seed + 1_000_003 * (state.step + 1))
+        t_decide = time.perf_counter()
+        notes = note_decisions(model.decide(lambda n: sampler.sample(n, probe), background=background))
+        state.time_s += time.perf_counter() - t_decide  # part of the fit's work, like the steps
+        return False, notes
+
+    guard = DivergenceGuard(config.guard, lr_scale=state.lr_guard_scale, events=state.guard_events)
+    guard.retake(state.step, model, optimizer)
+
+    def trainable() -> list[torch.Tensor]:
+        return [p for g in optimizer.param_groups for p in g["params"]]
+
     while True:
         if state.step >= config.iters:
             state.stop_reason = f"reached {config.iters} iterations"
@@ -186,27 +274,44 @@ def fit(
         if config.time_budget_s is not None and state.time_s >= config.time_budget_s:
             state.stop_reason = f"time budget of {config.time_budget_s:g} s used"
             break
+        notes: list[str] = []
+        stage = model.stage_ending(state.step)
+        if stage is not None:
+            stop, notes = end_of_stage(stage)
+            if stop:
+                state.stop_reason = f"target PSNR {config.target_psnr:g} dB reached at the end of the {stage} stage"
+                break
         if config.target_psnr is not None and state.last_test_psnr is not None and state.last_test_psnr >= config.target_psnr:
             state.stop_reason = f"target PSNR {config.target_psnr:g} dB reached"
             break
         t0 = time.perf_counter()
         event = model.begin_step(state.step, config.iters)
+        note_decisions(event.decisions)
         if event.params_changed:
             optimizer = build_optimizer(model, config)
+            guard.retake(state.step, model, optimizer, shape_changed=True)  # never roll back across a shape change
         if event.message:
             log.info("iter %d: %s", state.step, event.message)
-        scale = lr_scale(config, state.step, state.time_s)
-        for g in optimizer.param_groups:
-            g["lr"] = g["base_lr"] * scale
-        batch = sampler.sample(config.batch_rays, gen)
-        out = model(batch, background=background, train=True, generator=gen)
-        mse = torch.mean((out.rgb - batch.target) ** 2)
-        loss = mse
-        reg = model.regularization()
-        if reg is not None:
-            loss = loss + reg
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        rollbacks: list[str] = []
+        while True:  # a bad step is rolled back to the snapshot and tried again with fresh rays
+            scale = lr_scale(config, state.step, state.time_s) * guard.lr_scale
+            for g in optimizer.param_groups:
+                g["lr"] = g["base_lr"] * scale
+            batch = sampler.sample(config.batch_rays, gen)
+            out = model(batch, background=background, train=True, generator=gen)
+            mse = torch.mean((out.rgb - batch.target) ** 2)
+            loss = mse
+            reg = model.regularization()
+            if reg is not None:
+                loss = loss + reg
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            loss_value, bad = guard.check_step(loss, trainable(), state.step + 1, _DIVERGED_HINT)
+            if bad is None:
+                break
+            rollbacks.append(guard.rollback(state.step + 1, bad, model, optimizer, _DIVERGED_HINT).message())
+            state.lr_guard_scale, state.guard_events = guard.lr_scale, list(guard.events)
+        guard.accept(loss_value, state.step, model, optimizer)  # before the update: the snapshot holds checked values
         optimizer.step()
         if is_cuda:
             torch.cuda.synchronize(device)
@@ -215,21 +320,17 @@ def fit(
         record = StepRecord(
             iter=state.step,
             time_s=state.time_s,
-            train_psnr=float(mse_to_psnr(mse.detach())),
+            train_psnr=float(mse_to_psnr(mse.detach().clamp(min=MSE_FLOOR))),  # 100 dB, not inf, for a perfect batch
             samples_per_ray=out.samples_evaluated / len(batch),
             lr_scale=scale,
-            event=event.message or None,
+            event="; ".join(m for m in (*notes, event.message, *rollbacks) if m) or None,
         )
         last = state.step >= config.iters or (config.time_budget_s is not None and state.time_s >= config.time_budget_s)
         if test_views and last:
             final = final_eval()
             record.test_psnr = final.psnr
         elif test_views and config.eval_every > 0 and state.step % config.eval_every == 0:
-            views = list(test_views) if config.eval_views <= 0 else list(test_views)[: config.eval_views]
-            t_eval = time.perf_counter()
-            ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays)
-            state.eval_time_s += time.perf_counter() - t_eval
-            record.test_psnr = state.last_test_psnr = ev.psnr
+            record.test_psnr = partial_eval()
         history.append(record)
         for cb in callbacks:
             cb(record, model, state)

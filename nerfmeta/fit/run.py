@@ -9,6 +9,8 @@ Layout of ``RUN/``::
     summary.json             final figures (written at the end)
     psnr_vs_iter.png, psnr_vs_time.png
     renders/test_XXX.png     ground truth | prediction, for the first test views
+    snapshots/               renders at ``snapshot_iters`` and the end (only when set; see
+                             :mod:`nerfmeta.report.snapshots`)
 
 The starting point is data (STYLE rule 6): ``init`` is ``scratch`` (weights drawn from the seed),
 ``category:DIR`` (a category model from ``nerfmeta pretrain category``) or ``meta:DIR`` (a
@@ -42,6 +44,7 @@ from nerfmeta.fit.loop import Callback, FitConfig, FitResult, StepRecord, fit
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
+from nerfmeta.report.snapshots import SNAPSHOT_DIR, SnapshotWriter, default_views
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +65,9 @@ class RunConfig:
     """Optimisation settings."""
     downscale: float = 1.0
     """Image downscale factor applied when loading."""
+    normalize: bool = True
+    """Move a scene of extreme scale or far from the origin into range when loading (identity for
+    scenes already in range; see :mod:`nerfmeta.data.normalize`); the summary records what was applied."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Background the RGBA images are composited on (and rendered over)."""
     device: str = "cpu"
@@ -70,6 +76,10 @@ class RunConfig:
     """Where the initial weights come from: ``scratch``, ``category:DIR`` or ``meta:DIR``."""
     freeze: int = 0
     """Number of leading layers (of ``model.layers()``, input to output) kept frozen; needs a saved init."""
+    renders: int = RENDERED_VIEWS
+    """Test views whose ground truth | prediction strip is written to ``renders/`` (0: none)."""
+    snapshot_iters: tuple[int, ...] = ()
+    """Iterations after which to render the first test views into ``snapshots/`` (0: the starting point), plus the final one; empty: none."""
 
     def model_config(self, scene=None) -> Any:
         """The backbone config: defaults, then ``model`` overrides, then (if the config class has
@@ -85,6 +95,7 @@ class RunConfig:
         data = {k: v for k, v in data.items() if k not in RESOLVED_KEYS}
         data["fit"] = FitConfig(**data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
+        data["snapshot_iters"] = tuple(data.get("snapshot_iters", ()))
         return RunConfig(**data)
 
 
@@ -254,7 +265,7 @@ def run_fit(
     config.model_config()  # validate the overrides before any slow work
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background)
+    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize)
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
@@ -275,15 +286,24 @@ def run_fit(
         write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json()})
     writer = MetricsWriter(out / "metrics.jsonl")
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
+    snapshots = None
+    if config.snapshot_iters:  # rendered outside the timed steps: before, between (callback) and after the fit
+        snapshots = SnapshotWriter(scene, default_views(scene), config.snapshot_iters, out / SNAPSHOT_DIR, background,
+                                   chunk=config.fit.chunk_rays)
+        if state is None:
+            snapshots.start(model)
     try:
         result = fit(
-            model, scene, config.fit, background=background, callbacks=[writer, *callbacks], state=state,
-            should_checkpoint=lambda st: save_checkpoint(out / CHECKPOINT_NAME, model, st),
+            model, scene, config.fit, background=background, callbacks=[writer, *([snapshots] if snapshots else []), *callbacks],
+            state=state, should_checkpoint=lambda st: save_checkpoint(out / CHECKPOINT_NAME, model, st),
         )
     finally:
         writer.close()
     summary = summarize(config, scene, model, result, init, out)
-    write_outputs(out, summary, result)
+    if snapshots is not None:
+        snapshots.finish(model, result.state.step)
+        summary["snapshots"] = snapshots.as_json()
+    write_outputs(out, summary, result, renders=config.renders)
     return summary
 
 
@@ -291,6 +311,7 @@ def _optimizer_description(model, fit_config: FitConfig, frozen: Sequence[str]) 
     return {
         "name": "Adam",
         "eps": fit_config.adam_eps,
+        "eps_density": fit_config.adam_eps_density,
         "lr_groups": {g.name: g.lr for g in model.param_groups()},
         "lr_decay": f"exponential to x{fit_config.lr_decay:g} at the end of the iterations or time budget",
         "batch_rays": fit_config.batch_rays,
@@ -320,6 +341,7 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         "stop_reason": result.state.stop_reason,
         "test_views": len(scene.splits.get("test", ())),
         "holdout": scene.holdout,
+        "normalization": scene.normalization.as_json(),
         "resolution": [scene.height, scene.width],
         "test_psnr": None if final is None else round(final.psnr, 4),
         "test_ssim": None if final is None or final.ssim is None else round(final.ssim, 5),
@@ -331,17 +353,19 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         "device": config.device,
         "optimizer": _optimizer_description(model, config.fit, init.frozen_parameters),
         "n_parameters": sum(p.numel() for p in model.parameters()),
+        "decisions": result.state.decisions,
+        "guard_events": [e.as_json() for e in result.state.guard_events],
     }
 
 
-def write_outputs(out: Path, summary: dict[str, Any], result: FitResult) -> None:
+def write_outputs(out: Path, summary: dict[str, Any], result: FitResult, *, renders: int = RENDERED_VIEWS) -> None:
     records = read_metrics(out / "metrics.jsonl")
     name = f"{summary['backbone']} ({summary['init']})"
     title = f"{Path(summary['scene']).name}: {summary['backbone']}, {summary['iters']} iters"
     plot_psnr_curves({name: records}, "iter", out / "psnr_vs_iter.png", title=title)
     plot_psnr_curves({name: records}, "time_s", out / "psnr_vs_time.png", title=title)
     if result.final is not None:
-        for r in result.final.renders[:RENDERED_VIEWS]:
+        for r in result.final.renders[:renders]:
             strip = image_strip([r.target.numpy(), r.rgb.numpy()])
             with atomic_path(out / "renders" / f"test_{r.view:03d}.png") as tmp:
                 iio.imwrite(tmp, strip, extension=".png")
