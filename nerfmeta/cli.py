@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.meta_train",
     "nerfmeta.commands.classifier",
     "nerfmeta.commands.classify",
+    "nerfmeta.commands.report",
 )
 
 

@@ -1,70 +1,113 @@
-"""The README's main job: make a scene, inspect it, fit it, and say where the reports are.
+"""The README's main job: classify-and-fit two new scenes against a from-scratch baseline.
 
-Until classify-and-fit exists this runs a from-scratch fit of the grid backbone on one
-procedurally generated object (a chair from ``nerfmeta make-collection``), so it needs no data
-from outside the project.
+It generates two objects the zoo was never trained on (seeds the zoo build does not use): one of
+a category the zoo knows (a chair) and one of a category it has never seen (a vase). Each goes
+through ``nerfmeta fit SCENE --init auto --compare scratch``: the zoo's classifier names its
+category or says "unknown", the fit starts from that category's model or from the
+meta-learned initialisation, and the from-scratch baseline runs beside it with the identical
+budget and settings. Then ``nerfmeta report`` gathers both into one report. Everything is made
+by the project itself, so it needs no data from outside.
+
+Without a zoo (``--zoo none``) the routed fits are from scratch and there is nothing to compare.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
-from nerfmeta.data.common import LoadOptions
 from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback, FitConfig
-from nerfmeta.fit.run import RunConfig, run_fit
-from nerfmeta.inspect import SceneSummary, inspect_scene
+from nerfmeta.fit.run import RunConfig
+from nerfmeta.report.aggregate import write_report
+from nerfmeta.report.snapshots import SNAPSHOT_ITERS
+from nerfmeta.route import Route, classify_and_fit
+from nerfmeta.zoo import Zoo
 
 
 @dataclass(frozen=True)
 class DemoConfig:
     """Settings of the demo."""
 
-    category: str = "chair"
-    """Category of the generated object."""
+    known_category: str = "chair"
+    """Category of the first object (one the shipped zoo has a model for)."""
+    unseen_category: str = "vase"
+    """Category of the second object (one the shipped zoo has never seen)."""
     resolution: int = 64
-    """Image size of the generated views."""
-    views: int = 40
-    """Training views."""
+    """Image size of the generated views (what the classifier reads)."""
+    downscale: float = 2.0
+    """Fits read the views reduced by this factor (32 x 32 by default, as the zoo's models were trained)."""
+    views: int = 16
+    """Training views per object."""
     test_views: int = 8
-    """Test views (on other directions than the training views)."""
-    time_budget_s: float = 60.0
-    """Optimisation time of the fit."""
-    seed: int = 0
-    """Seed of the object and of the fit."""
+    """Test views per object (other directions than the training views)."""
+    iters: int | None = None
+    """Iterations of each fit (None: the zoo's)."""
+    eval_every: int | None = None
+    """Test PSNR every this many iterations (None: the zoo's)."""
+    seed: int = 1000
+    """Seed of the objects (the zoo is built from seed 0) and of the fits."""
 
 
 @dataclass(frozen=True)
 class DemoResult:
-    scene: Path
-    inspect: SceneSummary
-    summary: dict[str, Any]
+    scenes: dict[str, Path]
+    runs: dict[str, Path]
+    summaries: dict[str, dict[str, Any]]
+    report: Path | None
     out: Path
 
 
-def run_demo(config: DemoConfig, out: str | Path, *, overwrite: bool = False, callbacks: Sequence[Callback] = ()) -> DemoResult:
-    """Generate one object scene into ``out/scene``, plot its cameras into ``out/inspect``, fit it into ``out/fit``."""
+def demo_collection(config: DemoConfig) -> CollectionConfig:
+    return CollectionConfig(
+        categories=(config.known_category, config.unseen_category), scenes_per_category=1, views=config.views,
+        test_views=config.test_views, resolution=config.resolution, seed=config.seed, val_fraction=0.0, test_fraction=0.0,
+    )
+
+
+def run_demo(
+    config: DemoConfig,
+    out: str | Path,
+    *,
+    zoo: Zoo | None,
+    overwrite: bool = False,
+    callbacks_for: Callable[[str, str], Sequence[Callback]] = lambda scene, fit: (),
+    on_route: Callable[[str, Route], None] | None = None,
+) -> DemoResult:
+    """Generate the two scenes into ``out/scenes``, classify-and-fit each into ``out/NAME``, report into ``out/report``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it")
         shutil.rmtree(out)
-    collection = config_collection(config)
-    index = generate_collection(collection, out / "scene")
-    coll = load_collection(index)
-    scene_path = coll.scene_path(coll.scenes[0])
-    summary = inspect_scene(scene_path, LoadOptions(), out=out / "inspect")
-    run = RunConfig(scene=str(scene_path), backbone="grid", fit=FitConfig(iters=100_000, time_budget_s=config.time_budget_s, seed=config.seed))
-    fit_summary = run_fit(run, out / "fit", callbacks=callbacks)
-    return DemoResult(scene_path, summary, fit_summary, out)
+    coll = load_collection(generate_collection(demo_collection(config), out / "scenes"))
+    zoo_fit = zoo.fit if zoo is not None else {}
+    defaults = FitConfig()
+    fit = FitConfig(iters=config.iters or zoo_fit.get("iters", 300), batch_rays=zoo_fit.get("batch_rays", defaults.batch_rays),
+                    eval_every=config.eval_every or zoo_fit.get("eval_every", 25), checkpoint_every=0, seed=config.seed,
+                    eval_views=zoo_fit.get("eval_views", defaults.eval_views))
+    backbone = zoo.backbone if zoo is not None else "grid"
+    model = dict(zoo_fit.get("model", {})) if zoo is not None else {}
+    scenes, runs, summaries = {}, {}, {}
+    for record in coll.scenes:
+        name = record.name
+        scene_path = coll.scene_path(record)
+        scenes[name] = scene_path
+        run = RunConfig(scene=str(scene_path), backbone=backbone, model=model, fit=fit, downscale=config.downscale)
+        run = dataclasses.replace(run, snapshot_iters=tuple(i for i in SNAPSHOT_ITERS if i <= fit.iters) if zoo else ())
+        summaries[name] = classify_and_fit(
+            run, out / name, zoo=zoo, compare=("scratch",) if zoo is not None else (),
+            callbacks_for=lambda fit_name, n=name: callbacks_for(n, fit_name),
+            on_route=None if on_route is None else (lambda route, n=name: on_route(n, route)),
+        )
+        runs[name] = out / name
+    report = None
+    if zoo is not None:
+        write_report(list(runs.values()), out / "report")
+        report = out / "report" / "report.md"
+    return DemoResult(scenes, runs, summaries, report, out)
 
-
-def config_collection(config: DemoConfig) -> CollectionConfig:
-    return CollectionConfig(
-        categories=(config.category,), scenes_per_category=1, views=config.views, test_views=config.test_views,
-        resolution=config.resolution, seed=config.seed, val_fraction=0.0, test_fraction=0.0,
-    )

@@ -1,4 +1,4 @@
-"""Smoke test of the README's main job (`nerfmeta demo`) on a small configuration."""
+"""Smoke test of the README's main job (`nerfmeta demo`) on a small configuration with a real tiny zoo."""
 
 import json
 
@@ -7,20 +7,29 @@ import pytest
 from nerfmeta.cli import build_parser, main
 from nerfmeta.demo import DemoConfig, run_demo
 from nerfmeta.errors import ConfigError
+from nerfmeta.zoo import load_zoo
+
+SMALL = DemoConfig(known_category="chair", unseen_category="vase", resolution=16, downscale=1.0, views=4, test_views=2, iters=6,
+                   eval_every=3)
 
 
-def test_demo_generates_inspects_and_fits(tmp_path):
+def test_demo_routes_both_objects_and_compares_with_scratch(tmp_path, zoo_dir):
     out = tmp_path / "demo"
-    result = run_demo(DemoConfig(resolution=16, views=6, test_views=2, time_budget_s=1.5), out)
-    assert (out / "inspect" / "cameras.png").is_file()
-    for name in ("summary.json", "metrics.jsonl", "psnr_vs_iter.png", "psnr_vs_time.png"):
-        assert (out / "fit" / name).is_file(), name
-    summary = json.loads((out / "fit" / "summary.json").read_text())
-    assert summary == result.summary
-    assert summary["category"] == "chair" and summary["test_views"] == 2
-    assert summary["stop_reason"].startswith("time budget")
+    result = run_demo(SMALL, out, zoo=load_zoo(zoo_dir))
+    assert set(result.runs) == {"chair_000", "vase_000"}
+    for name, run in result.runs.items():
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary == result.summaries[name]
+        assert summary["route"]["route"] in ("category", "meta") and summary["iters"] == 6
+        assert (run / "compare" / "scratch" / "summary.json").is_file()
+        assert "comparison" in summary and (run / "psnr_vs_time.png").is_file()
     with pytest.raises(ConfigError, match="--overwrite"):
-        run_demo(DemoConfig(resolution=16, views=6, test_views=2, time_budget_s=1.0), out)
+        run_demo(SMALL, out, zoo=load_zoo(zoo_dir))
+
+
+def test_demo_without_a_zoo_fits_from_scratch(tmp_path):
+    result = run_demo(SMALL, tmp_path / "demo", zoo=None)
+    assert all(s["route"]["route"] == "scratch" and "comparison" not in s for s in result.summaries.values())
 
 
 def test_help_lists_every_command(capsys):
@@ -28,6 +37,6 @@ def test_help_lists_every_command(capsys):
         main(["--help"])
     assert exit_.value.code == 0
     text = capsys.readouterr().out
-    for command in ("inspect", "fit", "make-collection", "demo"):
+    for command in ("inspect", "fit", "make-collection", "demo", "classify", "meta-train", "pretrain"):
         assert command in text
     assert build_parser().prog == "nerfmeta"

@@ -1,0 +1,181 @@
+"""The model zoo: a classifier, category models and a meta-learned initialisation, hash-checked.
+
+A zoo folder (the shipped one is ``model_zoo/`` in the checkout, built by
+``scripts/build_model_zoo``) holds::
+
+    manifest.json            {"format", "built_by", "seed", "backbone", "fit", "training_data",
+                              "entries": [{"name", "kind", "path", "category", "files": {FILE: SHA-256},
+                              "bytes", "config", "metrics"}, ...]}
+    classifier/              a 'nerfmeta classifier train' folder (classifier.json, model.safetensors)
+    category/CATEGORY/       a 'nerfmeta pretrain category' model (init.json, model.safetensors)
+    meta/                    a 'nerfmeta meta-train' initialisation (init.json, model.safetensors)
+
+As torchvision does for pretrained weights, every file the zoo uses is listed in the manifest
+with its SHA-256, and :func:`load_zoo` refuses a zoo in which any listed file is missing or has
+another hash, naming the file. ``fit`` holds the fit settings the zoo's models were trained for
+(backbone, rays per iteration, ...), which a routed fit and its scratch baseline both use.
+
+Which zoo: ``--zoo DIR``, else the ``NERFMETA_ZOO`` environment variable (``none`` for no zoo),
+else ``model_zoo/`` beside the package when it has a manifest.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from nerfmeta.errors import ConfigError
+from nerfmeta.io import sha256_file, to_jsonable, write_json
+
+ZOO_FORMAT = "nerfmeta-zoo-1"
+MANIFEST = "manifest.json"
+KINDS = ("classifier", "category", "meta")
+ENV = "NERFMETA_ZOO"
+PACKAGED_ZOO = Path(__file__).resolve().parents[1] / "model_zoo"
+"""The zoo shipped in the checkout (used when it has a manifest)."""
+
+
+@dataclass(frozen=True)
+class ZooEntry:
+    """One model of a zoo.
+
+    Attributes:
+        name: unique name (``classifier``, ``category/chair``, ``meta``).
+        kind: one of :data:`KINDS`.
+        path: its folder, absolute.
+        category: the category of a category model, else None.
+        files: file name (relative to ``path``) -> SHA-256.
+        config: how it was trained (recipe).
+        metrics: what was measured on it.
+    """
+
+    name: str
+    kind: str
+    path: Path
+    category: str | None
+    files: dict[str, str]
+    config: dict[str, Any]
+    metrics: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Zoo:
+    """A loaded, verified zoo.
+
+    Attributes:
+        root: the zoo folder.
+        manifest: the parsed ``manifest.json``.
+        entries: its models.
+        fit: the fit settings its models were trained for (``backbone``, ``batch_rays``, ``iters``, ...).
+    """
+
+    root: Path
+    manifest: dict[str, Any]
+    entries: tuple[ZooEntry, ...]
+    fit: dict[str, Any]
+
+    @property
+    def classifier(self) -> ZooEntry | None:
+        return next((e for e in self.entries if e.kind == "classifier"), None)
+
+    @property
+    def meta(self) -> ZooEntry | None:
+        return next((e for e in self.entries if e.kind == "meta"), None)
+
+    @property
+    def categories(self) -> dict[str, ZooEntry]:
+        """Category -> its category model."""
+        return {e.category: e for e in self.entries if e.kind == "category" and e.category}
+
+    @property
+    def backbone(self) -> str:
+        return str(self.fit.get("backbone", "nerf"))
+
+
+def resolve_zoo_path(zoo: str | os.PathLike | None) -> Path | None:
+    """The zoo folder to use: ``zoo`` if given, else ``$NERFMETA_ZOO`` (``none``: no zoo), else the packaged one if built."""
+    if zoo is not None:
+        return None if str(zoo).lower() == "none" else Path(zoo)
+    env = os.environ.get(ENV)
+    if env is not None and env != "":
+        return None if env.lower() == "none" else Path(env)
+    return PACKAGED_ZOO if (PACKAGED_ZOO / MANIFEST).is_file() else None
+
+
+def load_zoo(root: str | os.PathLike, *, verify: bool = True) -> Zoo:
+    """Read ``root/manifest.json`` and (``verify``) check every listed file's SHA-256.
+
+    Raises:
+        ConfigError: a missing or unreadable manifest, another format, an entry without its
+            folder or files, a file whose hash differs from the manifest's (one line naming it).
+    """
+    root = Path(root)
+    index = root / MANIFEST
+    if not index.is_file():
+        raise ConfigError(f"{index}: missing; a model zoo folder needs {MANIFEST} (build one with scripts/build_model_zoo)")
+    try:
+        doc = json.loads(index.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"{index}: not readable JSON ({err})") from None
+    if not isinstance(doc, dict) or doc.get("format") != ZOO_FORMAT:
+        raise ConfigError(f"{index}: not a nerfmeta model zoo manifest (format {doc.get('format') if isinstance(doc, dict) else None!r}, "
+                          f"expected {ZOO_FORMAT!r})")
+    entries = []
+    for raw in doc.get("entries", []):
+        try:
+            name, kind, rel, files = raw["name"], raw["kind"], raw["path"], dict(raw["files"])
+        except (KeyError, TypeError):
+            raise ConfigError(f"{index}: an entry lacks name/kind/path/files: {str(raw)[:80]}") from None
+        if kind not in KINDS:
+            raise ConfigError(f"{index}: entry {name!r} has unknown kind {kind!r} (expected one of {', '.join(KINDS)})")
+        folder = (root / rel).resolve()
+        if verify:
+            for file, digest in files.items():
+                path = folder / file
+                if not path.is_file():
+                    raise ConfigError(f"{path}: listed in {index} but missing; restore the zoo (git checkout model_zoo) or rebuild it")
+                actual = sha256_file(path)
+                if actual != digest:
+                    raise ConfigError(f"{path}: SHA-256 {actual[:12]}... does not match {index} ({str(digest)[:12]}...); "
+                                      "the file was changed or corrupted, refusing the zoo")
+        entries.append(ZooEntry(name, kind, folder, raw.get("category"), files, raw.get("config", {}), raw.get("metrics", {})))
+    if not entries:
+        raise ConfigError(f"{index}: lists no models")
+    return Zoo(root.resolve(), doc, tuple(entries), dict(doc.get("fit", {})))
+
+
+def open_zoo(zoo: str | os.PathLike | None) -> Zoo | None:
+    """The verified zoo chosen by :func:`resolve_zoo_path`, or None when there is none."""
+    path = resolve_zoo_path(zoo)
+    return None if path is None else load_zoo(path)
+
+
+def zoo_entry(root: Path, name: str, kind: str, folder: Path, files: Sequence[str], *, category: str | None = None,
+              config: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A manifest entry for ``folder`` (inside ``root``) listing ``files`` with their hashes and sizes."""
+    paths = [folder / f for f in files]
+    for p in paths:
+        if not p.is_file():
+            raise ConfigError(f"{p}: missing, cannot list it in the zoo")
+    return {
+        "name": name,
+        "kind": kind,
+        "path": folder.resolve().relative_to(root.resolve()).as_posix(),
+        "category": category,
+        "files": {f: sha256_file(folder / f) for f in files},
+        "bytes": sum(p.stat().st_size for p in paths),
+        "config": to_jsonable(config or {}),
+        "metrics": to_jsonable(metrics or {}),
+    }
+
+
+def write_manifest(root: str | os.PathLike, entries: Sequence[dict[str, Any]], **fields: Any) -> Path:
+    """Write ``root/manifest.json`` (atomically) with ``entries`` and the top-level ``fields``."""
+    root = Path(root)
+    doc = {"format": ZOO_FORMAT, **to_jsonable(fields), "entries": list(entries),
+           "total_bytes": sum(int(e["bytes"]) for e in entries)}
+    write_json(root / MANIFEST, doc)
+    return root / MANIFEST
