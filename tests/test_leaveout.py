@@ -27,7 +27,7 @@ from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
 from nerfmeta.init import load_init, save_init
 
 # A coarse stage, a growth step, and the view trial decided at fine step 20.
-GRID = {"coarse_iters": 30, "coarse_num_voxels": 16**3, "num_voxels": 24**3, "growth_steps": [10],
+GRID = {"coarse_iters": 30, "coarse_num_voxels": 16**3, "num_voxels": 24**3, "growth_steps": [10], "view_dependent": "auto",
         "view_probe_step": 20, "view_probe_rays": 2048, "mlp_width": 8, "mlp_depth": 2, "feature_dim": 2}
 FIT = FitConfig(iters=60, batch_rays=512, eval_every=0, checkpoint_every=0)
 PROBE = GRID["coarse_iters"] + GRID["view_probe_step"]
@@ -151,13 +151,14 @@ def test_a_fixed_view_dependent_is_recorded_not_measured(scene, value):
 
 
 def test_view_dependent_config_values_and_json():
-    assert VoxelGridConfig().view_dependent == "auto"
+    assert VoxelGridConfig().view_dependent is True  # "auto" is opt-in (BENCHMARKS.md)
     for value in (True, False, "auto"):
         assert VoxelGridConfig(view_dependent=value).view_dependent == value
     with pytest.raises(Exception, match="view_dependent"):
         VoxelGridConfig(view_dependent="sometimes")
     # Without a decide() call (a model driven by hand), "auto" keeps the MLP once the trial is over.
-    model = VoxelGrid(VoxelGridConfig(coarse_iters=0, num_voxels=8**3, view_probe_step=5), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    model = VoxelGrid(VoxelGridConfig(coarse_iters=0, num_voxels=8**3, view_dependent="auto", view_probe_step=5),
+                      torch.tensor([[-1.0] * 3, [1.0] * 3]))
     assert model.view_dependent is None and "mlp" in model._modules and model.stage_ending(5) == "view trial"
     assert model.begin_step(5, None).params_changed is False and model.view_dependent is True and "mlp" in model._modules
 

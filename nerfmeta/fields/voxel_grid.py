@@ -10,8 +10,8 @@ Two stages, as in DirectVoxGO (Sun et al., CVPR 2022):
 2. **Fine**: a density grid and a feature grid in the tightened box. Colour is
    ``sigmoid(diffuse + mlp(features, view))`` (DirectVoxGO's non-direct colour head): the feature
    grid holds 3 diffuse logits plus ``feature_dim`` channels that a shallow MLP decodes with the
-   encoded view direction; the MLP's last layer starts at zero. With ``view_dependent="auto"`` (the
-   default) this is a per-scene trial: ``view_probe_step`` steps into the fine stage,
+   encoded view direction; the MLP's last layer starts at zero. With ``view_dependent="auto"`` (opt-in,
+   see the field's note) this is a per-scene trial: ``view_probe_step`` steps into the fine stage,
    :meth:`VoxelGrid.decide` measures on training rays how much lower the error is with the view
    direction than with the MLP's output averaged over training directions; when that gain is below
    ``view_gain_db`` the direction-averaged MLP is folded into the diffuse colour and the MLP and its
@@ -107,8 +107,8 @@ class VoxelGridConfig:
     """Width of the colour MLP."""
     mlp_depth: int = 3
     """Linear layers in the colour MLP (>= 1)."""
-    view_dependent: bool | str = "auto"
-    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"``: decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it."""
+    view_dependent: bool | str = True
+    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"``: decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it. Not the default: the trial tells diffuse from specular scenes, but on a diffuse generated car dropping the MLP cost 0.26 dB at equal iterations (0.44 dB in a 20 s budget), the MLP's capacity helping beyond view dependence (BENCHMARKS.md)."""
     view_probe_step: int = 100
     """``auto``: fine-stage step at which the view dependence is measured (the fine stage has the MLP until then)."""
     view_gain_db: float = 0.45
