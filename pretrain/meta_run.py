@@ -44,6 +44,7 @@ from nerfmeta.errors import ConfigError, NerfmetaError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model
 from nerfmeta.fit.guard import DivergenceGuard, GuardEvent
+from nerfmeta.fit.run import read_metrics  # the same metrics.jsonl reader as fit runs (torn last line ignored)
 from nerfmeta.init import save_init
 from nerfmeta.io import atomic_path, save_tensors, to_jsonable, write_json
 from nerfmeta.metrics import mse_to_psnr
@@ -183,20 +184,6 @@ def restore(model: RadianceModel, optimizer: torch.optim.Optimizer | None, ckpt:
 
 # ---------------------------------------------------------------------------------------------
 # The run folder
-
-
-def read_metrics(path: str | Path) -> list[dict[str, Any]]:
-    """The records of a ``metrics.jsonl`` (a torn last line from a kill is ignored)."""
-    out = []
-    p = Path(path)
-    if not p.exists():
-        return out
-    for line in p.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return out
 
 
 def saved_config(out: str | Path) -> MetaConfig:

@@ -26,7 +26,6 @@ import argparse
 import datetime
 import json
 import os
-import re
 import shlex
 import subprocess
 import sys
@@ -203,17 +202,6 @@ def section_text(result: dict, doc: dict, train_s: float, command: str, load_bef
     return "\n".join(lines)
 
 
-def write_section(path: Path, text: str) -> None:
-    """Replace our section of ``path`` (up to the next ``## `` heading), or append it."""
-    from nerfmeta.io import write_bytes_atomic
-
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(old):
-        new = pattern.sub(lambda m: text + "\n", old, count=1)
-    else:
-        new = old.rstrip("\n") + "\n\n" + text + "\n"
-    write_bytes_atomic(path, new.rstrip("\n").encode() + b"\n")
 
 
 def main() -> int:
@@ -252,7 +240,8 @@ def main() -> int:
     print(text)
     (work / "bench_result.json").write_text(json.dumps({"result": result, "train_s": train_s}, indent=2))
     if args.write:
-        write_section(ROOT / "BENCHMARKS.md", text)
+        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0
 

@@ -17,7 +17,6 @@ import argparse
 import datetime
 import hashlib
 import os
-import re
 import resource
 import statistics
 import subprocess
@@ -84,20 +83,6 @@ def section_text(times: list[float], cpus: list[float], identical: bool, loads: 
     return "\n".join(lines)
 
 
-def write_section(path: Path, text: str) -> None:
-    """Replace our section of ``path`` (up to the next ``## `` heading), or append it."""
-    if path.exists():
-        doc = path.read_text()
-        pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-        if pattern.search(doc):
-            doc = pattern.sub(lambda _: text + "\n", doc, count=1)
-        else:
-            doc = doc.rstrip("\n") + "\n\n" + text
-    else:
-        doc = "# Benchmarks\n\n" + text
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(doc.rstrip("\n") + "\n")
-    os.replace(tmp, path)
 
 
 def main() -> int:
@@ -120,7 +105,8 @@ def main() -> int:
     print(f"median {median:.1f} s, min {min(times):.1f} s, max {max(times):.1f} s, spread {spread:.1f} s; "
           f"median CPU {statistics.median(cpus):.1f} s; outputs {'identical' if identical else 'DIFFER'}; target < {TARGET_S:.0f} s")
     if not args.no_write:
-        write_section(ROOT / "BENCHMARKS.md", section_text(times, cpus, identical, loads))
+        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, section_text(times, cpus, identical, loads))
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0 if identical and median < TARGET_S else 1
 

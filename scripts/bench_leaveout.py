@@ -42,7 +42,6 @@ import argparse
 import datetime
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
@@ -483,14 +482,6 @@ def section(results: dict, args: argparse.Namespace) -> str:
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def write_section(path: Path, text: str) -> None:
-    """Replace our ``## `` section of BENCHMARKS.md (append it when absent), atomically."""
-    doc = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    doc = pattern.sub(lambda _: text + "\n", doc, count=1) if pattern.search(doc) else doc.rstrip("\n") + "\n\n" + text
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(doc.rstrip("\n") + "\n")
-    os.replace(tmp, path)
 
 
 CONCLUSIONS = "conclusions.md"
@@ -533,7 +524,8 @@ def main() -> int:
     text = section(results, args)
     print(text)
     if args.write:
-        write_section(ROOT / "BENCHMARKS.md", text)
+        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0
 

@@ -21,7 +21,6 @@ import argparse
 import datetime
 import json
 import os
-import re
 import shutil
 import sys
 import time
@@ -144,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         lines += control_table(scenes, summaries, controls)
     print("\n".join(lines))
     if args.write:
-        write_section(ROOT / "BENCHMARKS.md", lines)
+        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, "\n".join(lines))
         print(f"updated BENCHMARKS.md ({SECTION})")
     return 0
 
@@ -234,12 +234,6 @@ def _load(load) -> str:
     return " / ".join(f"{v:.1f}" for v in load)
 
 
-def write_section(path: Path, lines: list[str]) -> None:
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    block = "\n".join(lines).rstrip() + "\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    text = pattern.sub(lambda m: block + "\n", text) if pattern.search(text) else text.rstrip() + "\n\n" + block
-    path.write_text(text)
 
 
 if __name__ == "__main__":

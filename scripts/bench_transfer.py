@@ -42,7 +42,6 @@ import json
 import math
 import multiprocessing
 import os
-import re
 import shutil
 import statistics
 import sys
@@ -59,6 +58,7 @@ if str(ROOT) not in sys.path:  # the pretrain/ package, when the checkout is not
 import torch  # noqa: E402
 
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection  # noqa: E402
+from nerfmeta.report.benchmarks import write_section as write_benchmark_section  # noqa: E402
 from nerfmeta.data import load_scene  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig  # noqa: E402
@@ -487,17 +487,6 @@ def section_text(agg: dict, meta: dict) -> str:
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
-def write_section(path: Path, text: str) -> None:
-    """Replace our section of ``path`` (up to the next ``## `` heading), or append it."""
-    doc = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(doc):
-        doc = pattern.sub(lambda _: text + "\n", doc, count=1)
-    else:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(doc.rstrip("\n") + "\n")
-    os.replace(tmp, path)
 
 
 def _load() -> str:
@@ -578,7 +567,7 @@ def main() -> int:
         "jobs": f"{len(p.pretrain)} category models and {len(p.fits)} fits, {reused} of them reused from an earlier run",
         "findings": notes.read_text().splitlines() if notes.exists() else [],
     }
-    write_section(Path(args.benchmarks), section_text(agg, meta))
+    write_benchmark_section(Path(args.benchmarks), SECTION, section_text(agg, meta))
     print(f"updated {args.benchmarks} ({SECTION}) and {plots}/transfer_*.png")
     return 0
 

@@ -23,7 +23,6 @@ import argparse
 import datetime
 import logging
 import os
-import re
 import sys
 import tempfile
 import time
@@ -33,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from nerfmeta.stress import CASES, FULL, MAX_PSNR_GAP, QUICK, format_table, run_table  # noqa: E402
+from nerfmeta.report.benchmarks import write_section as write_benchmark_section  # noqa: E402
 
 SECTION = "## Stress cases"
 MACHINE = "2-core CPU, no GPU"
@@ -90,15 +90,6 @@ def normalisation_summary(results) -> list[str]:
     return [text, ""]
 
 
-def write_section(path: Path, text: str) -> None:
-    """Replace the ``## Stress cases`` section of ``path`` (appending it when absent), atomically."""
-    doc = path.read_text() if path.exists() else "# Benchmarks\n"
-    section = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    found = section.search(doc)
-    doc = doc[:found.start()] + text + "\n" + doc[found.end():] if found else doc.rstrip("\n") + "\n\n" + text
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(doc.rstrip("\n") + "\n")
-    os.replace(tmp, path)
 
 
 def main() -> int:
@@ -139,7 +130,7 @@ def main() -> int:
     print("\n".join(format_table(results)))
     print(f"\nwall time {wall_s:.0f} s; {sum(r.ok for r in results)} of {len(results)} rows ok")
     if args.write:
-        write_section(ROOT / "BENCHMARKS.md", section_text(results, args, wall_s, load))
+        write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, section_text(results, args, wall_s, load))
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0 if all(r.ok for r in results) else 1
 
