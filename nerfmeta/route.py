@@ -186,9 +186,11 @@ def classify_and_fit(
     if unknown:
         raise ConfigError(f"--compare {','.join(unknown)}: supported baselines are {', '.join(BASELINES)}")
     prepare_run_dir(out, resume=resume, overwrite=overwrite)
-    if resume:
-        saved = json.loads((out / "summary.json").read_text()).get("route") if (out / "summary.json").is_file() else None
-        route_doc = saved or json.loads((out / "route.json").read_text())
+    if resume:  # the decision was recorded in config.json before the routed fit's first step
+        route_doc = json.loads((out / "config.json").read_text()).get("route")
+        if route_doc is None:
+            raise ConfigError(f"{out}/config.json: no routing decision recorded; this run was not made by "
+                              "nerfmeta fit --init auto (resume it with the --init it was made with)")
         route = Route(**{**route_doc, "known_categories": tuple(route_doc.get("known_categories", ()))})
     else:
         prediction = classify_scene(config.scene, zoo, config.background) if zoo is not None else None
@@ -200,7 +202,7 @@ def classify_and_fit(
         import shutil
 
         shutil.rmtree(out)
-    summary = run_fit(routed, out, resume=resume, callbacks=list(callbacks_for("routed")))
+    summary = run_fit(routed, out, resume=resume, callbacks=list(callbacks_for("routed")), record={"route": route.as_json()})
     write_json(out / "route.json", route.as_json())
     summary["route"] = route.as_json()
     write_json(out / "summary.json", summary)

@@ -109,8 +109,9 @@ def test_routed_fit_with_scratch_comparison(zoo_dir, new_scenes, tmp_path, monke
     routed_cfg = json.loads((out / "config.json").read_text())
     base_cfg = json.loads((out / "compare" / "scratch" / "config.json").read_text())
     assert base_cfg["init"] == "scratch" and base_cfg["freeze"] == 0
-    assert {k: v for k, v in base_cfg.items() if k not in ("init", "freeze", "init_kind", "init_path", "init_sha256", "frozen_layers")} == \
-        {k: v for k, v in routed_cfg.items() if k not in ("init", "freeze", "init_kind", "init_path", "init_sha256", "frozen_layers")}
+    start = ("init", "freeze", "init_kind", "init_path", "init_sha256", "frozen_layers", "route")
+    assert {k: v for k, v in base_cfg.items() if k not in start} == {k: v for k, v in routed_cfg.items() if k not in start}
+    assert routed_cfg["route"] == summary["route"] and "route" not in base_cfg
     if route == "category":
         assert routed_cfg["freeze"] == 1 and len(routed_cfg["frozen_layers"]) == 1
     comparison = summary["comparison"]
@@ -151,3 +152,40 @@ def test_compare_needs_auto_and_a_known_baseline(tiny_scene: Path, tmp_path: Pat
     assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "b"), "--zoo", str(zoo_dir), "--compare", "grid"]) == 2
     assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "c"), "--zoo", str(zoo_dir), "--backbone", "grid"]) == 2
     assert not any((tmp_path / n).exists() for n in "abc")
+
+
+def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo_dir, new_scenes, tmp_path, monkeypatch):
+    import nerfmeta.route as route_module
+
+    monkeypatch.setattr(route_module, "classify_scene", lambda scene, zoo, background: _prediction("chair", False))
+    config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
+                       fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=2))
+    out = tmp_path / "run"
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_5(name):
+        def callback(record, model, state):
+            if name == "routed" and record.iter == 5:
+                raise Killed
+        return [callback]
+
+    with pytest.raises(Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), callbacks_for=kill_at_5)
+    assert json.loads((out / "config.json").read_text())["route"]["route"] == "category"
+    # resuming must continue the recorded route, not ask the classifier again
+    monkeypatch.setattr(route_module, "classify_scene", lambda *a: pytest.fail("resume asked the classifier again"))
+    summary = classify_and_fit(config, out, zoo=load_zoo(zoo_dir), resume=True)
+    assert summary["route"]["route"] == "category" and summary["init"] == "category" and summary["iters"] == 6
+    assert json.loads((out / "route.json").read_text())["route"] == "category"
+
+
+def test_resume_without_init_resumes_a_run_made_with_an_explicit_init(tiny_scene: Path, tmp_path: Path):
+    out = tmp_path / "run"
+    args = ["--iters", "4", "--batch-rays", "32", "--checkpoint-every", "2", "--set", "coarse_iters=2", "--set", "growth_steps=[1]"]
+    assert main(["fit", str(tiny_scene), "--out", str(out), "--init", "scratch", *args]) == 0
+    # --init defaults to auto; the run's config.json holds no route, so this is a plain resume of its own init
+    assert main(["fit", str(tiny_scene), "--out", str(out), "--resume"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["init"] == "scratch" and "route" not in summary and summary["iters"] == 4

@@ -136,7 +136,17 @@ def fit_settings(args: argparse.Namespace, zoo_fit: dict | None) -> dict:
     return out
 
 
+def _made_by_another_init(out: str) -> bool:
+    """True for a run folder whose config.json records no routing decision (made with an explicit --init)."""
+    try:
+        return "route" not in json.loads((Path(out) / "config.json").read_text())
+    except (OSError, ValueError):
+        return False  # nothing readable to resume: the auto path says so
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.init == "auto" and args.resume and _made_by_another_init(args.out):
+        args.init = "scratch"  # a plain resume: run_fit continues with the init saved in config.json
     if args.init == "auto":
         return run_auto(args)
     if args.compare:

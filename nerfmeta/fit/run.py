@@ -30,7 +30,7 @@ import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import imageio.v3 as iio
 import torch
@@ -99,8 +99,9 @@ class RunConfig:
         return RunConfig(**data)
 
 
-RESOLVED_KEYS = ("init_kind", "init_path", "init_sha256", "frozen_layers")
-"""Keys ``config.json`` records beside the :class:`RunConfig` fields (what ``init`` and ``freeze`` resolved to)."""
+RESOLVED_KEYS = ("init_kind", "init_path", "init_sha256", "frozen_layers", "route")
+"""Keys ``config.json`` records beside the :class:`RunConfig` fields (what ``init`` and ``freeze`` resolved to,
+and the classifier's routing decision of a ``--init auto`` fit, so that ``--resume`` continues the same route)."""
 
 
 @dataclass(frozen=True)
@@ -249,11 +250,13 @@ def run_fit(
     resume: bool = False,
     overwrite: bool = False,
     callbacks: Sequence[Callback] = (),
+    record: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Fit a scene into the run folder ``out`` and return the summary (also ``summary.json``).
 
     With ``resume=True`` the saved ``config.json`` is used and the fit continues from the
-    checkpoint; ``config`` only has to name the same scene.
+    checkpoint; ``config`` only has to name the same scene. ``record`` adds keys of
+    :data:`RESOLVED_KEYS` (the routing decision) to ``config.json``, written before the first step.
     """
     out = Path(out)
     prepare_run_dir(out, resume=resume, overwrite=overwrite)
@@ -283,7 +286,10 @@ def run_fit(
         with atomic_path(out / "metrics.jsonl") as tmp:
             tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
     else:
-        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json()})
+        extra = dict(record or {})
+        if set(extra) - set(RESOLVED_KEYS):
+            raise ValueError(f"record keys must be among {RESOLVED_KEYS}, got {sorted(extra)}")
+        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json(), **extra})
     writer = MetricsWriter(out / "metrics.jsonl")
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     snapshots = None
