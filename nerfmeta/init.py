@@ -13,7 +13,6 @@ the hash and that the backbone and shapes match the fit, and refuses anything el
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ import torch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict
-from nerfmeta.io import load_tensors, save_tensors, sha256_file, to_jsonable, write_json
+from nerfmeta.io import check_sha256, load_tensors, read_json_index, save_tensors, sha256_file, to_jsonable, write_json
 
 INIT_FORMAT = "nerfmeta-init-1"
 KINDS = ("category", "meta")
@@ -78,20 +77,13 @@ def load_init(folder: str | os.PathLike, *, expect_kind: str | None = None) -> S
     """Read an initialisation folder; one-line :class:`ConfigError` for anything missing or wrong."""
     folder = Path(folder)
     index, weights = folder / INDEX, folder / WEIGHTS
-    for path in (index, weights):
-        if not path.is_file():
-            raise ConfigError(f"{path}: missing; an initialisation folder needs {INDEX} and {WEIGHTS}")
-    try:
-        doc = json.loads(index.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"{index}: not readable JSON ({err})") from None
-    if doc.get("format") != INIT_FORMAT:
-        raise ConfigError(f"{index}: not a nerfmeta initialisation (format {doc.get('format')!r})")
+    doc = read_json_index(index, INIT_FORMAT, what="a nerfmeta initialisation",
+                          missing=f"an initialisation folder needs {INDEX} and {WEIGHTS}")
+    if not weights.is_file():
+        raise ConfigError(f"{weights}: missing; an initialisation folder needs {INDEX} and {WEIGHTS}")
     if expect_kind is not None and doc.get("kind") != expect_kind:
         raise ConfigError(f"{folder}: is a {doc.get('kind')!r} initialisation, not {expect_kind!r}")
-    digest = sha256_file(weights)
-    if digest != doc.get("sha256"):
-        raise ConfigError(f"{weights}: SHA-256 {digest[:12]}... does not match {index} ({str(doc.get('sha256'))[:12]}...); the file is corrupted or was replaced")
+    check_sha256(weights, doc.get("sha256"), index, "the file is corrupted or was replaced")
     try:
         state = load_tensors(weights)
     except Exception as err:  # safetensors' own error types

@@ -18,6 +18,8 @@ from typing import Any, Iterator
 import torch
 from safetensors.torch import load_file, save_file
 
+from nerfmeta.errors import ConfigError
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
@@ -87,3 +89,35 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
         for block in iter(lambda: f.read(chunk), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def read_json_index(path: str | os.PathLike, expected_format: str, *, what: str, missing: str) -> dict[str, Any]:
+    """Read a JSON index file (a manifest, an ``init.json``) and check its ``format`` field.
+
+    Args:
+        path: the index file.
+        expected_format: the value its ``format`` must hold.
+        what: what the file is, for the error ("a nerfmeta model zoo manifest").
+        missing: what to say when the file is absent (how to get one).
+
+    Raises:
+        ConfigError: a missing or unreadable file, or another format (one line naming the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: missing; {missing}")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"{path}: not readable JSON ({err})") from None
+    found = doc.get("format") if isinstance(doc, dict) else None
+    if found != expected_format:
+        raise ConfigError(f"{path}: not {what} (format {found!r}, expected {expected_format!r})")
+    return doc
+
+
+def check_sha256(path: str | os.PathLike, expected: Any, index: str | os.PathLike, consequence: str) -> None:
+    """Raise a one-line ConfigError when ``path``'s SHA-256 differs from ``expected`` (as recorded in ``index``)."""
+    actual = sha256_file(path)
+    if actual != expected:
+        raise ConfigError(f"{path}: SHA-256 {actual[:12]}... does not match {index} ({str(expected)[:12]}...); {consequence}")

@@ -21,14 +21,13 @@ else ``model_zoo/`` beside the package when it has a manifest.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 from nerfmeta.errors import ConfigError
-from nerfmeta.io import sha256_file, to_jsonable, write_json
+from nerfmeta.io import check_sha256, read_json_index, sha256_file, to_jsonable, write_json
 
 ZOO_FORMAT = "nerfmeta-zoo-1"
 MANIFEST = "manifest.json"
@@ -114,15 +113,8 @@ def load_zoo(root: str | os.PathLike, *, verify: bool = True) -> Zoo:
     """
     root = Path(root)
     index = root / MANIFEST
-    if not index.is_file():
-        raise ConfigError(f"{index}: missing; a model zoo folder needs {MANIFEST} (build one with scripts/build_model_zoo)")
-    try:
-        doc = json.loads(index.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"{index}: not readable JSON ({err})") from None
-    if not isinstance(doc, dict) or doc.get("format") != ZOO_FORMAT:
-        raise ConfigError(f"{index}: not a nerfmeta model zoo manifest (format {doc.get('format') if isinstance(doc, dict) else None!r}, "
-                          f"expected {ZOO_FORMAT!r})")
+    doc = read_json_index(index, ZOO_FORMAT, what="a nerfmeta model zoo manifest",
+                          missing=f"a model zoo folder needs {MANIFEST} (build one with scripts/build_model_zoo)")
     entries = []
     for raw in doc.get("entries", []):
         try:
@@ -137,10 +129,7 @@ def load_zoo(root: str | os.PathLike, *, verify: bool = True) -> Zoo:
                 path = folder / file
                 if not path.is_file():
                     raise ConfigError(f"{path}: listed in {index} but missing; restore the zoo (git checkout model_zoo) or rebuild it")
-                actual = sha256_file(path)
-                if actual != digest:
-                    raise ConfigError(f"{path}: SHA-256 {actual[:12]}... does not match {index} ({str(digest)[:12]}...); "
-                                      "the file was changed or corrupted, refusing the zoo")
+                check_sha256(path, digest, index, "the file was changed or corrupted, refusing the zoo")
         entries.append(ZooEntry(name, kind, folder, raw.get("category"), files, raw.get("config", {}), raw.get("metrics", {})))
     if not entries:
         raise ConfigError(f"{index}: lists no models")
