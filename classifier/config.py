@@ -19,10 +19,10 @@ ARCHITECTURES = ("resnet18", "resnet50")
 STEMS = ("imagenet", "3x3s2", "3x3s1")
 """ResNet stems: torchvision's 7x7/2 conv + max-pool, or a 3x3 conv of stride 2 or 1 without max-pool."""
 
-SCORES = ("msp", "energy", "mahalanobis")
+SCORES = ("msp", "energy", "mahalanobis", "class_mahalanobis")
 """Unknown-category scores (higher = more like a known category); see :mod:`classifier.predict`."""
 
-DEFAULT_SCORE = "mahalanobis"
+DEFAULT_SCORE = "class_mahalanobis"
 """The score ``auto`` falls back to without held-out validation scenes (best on the design runs' validation data)."""
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

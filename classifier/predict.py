@@ -12,6 +12,12 @@ Scores (names as in :data:`classifier.config.SCORES`):
 - ``mahalanobis``: minus the squared Mahalanobis distance of the scene's mean penultimate
   feature (over its views) to the nearest class, under the spread of the training scenes' mean
   features (:class:`FeatureStats`).
+- ``class_mahalanobis``: the same distances, each divided by its class's typical distance on
+  *validation* scenes (``FeatureStats.class_scale``), and minus the log of the smallest ratio. The
+  training scenes' spread is one pooled covariance, and the network fits its training scenes more
+  tightly than new ones by a margin that differs per class (measured 1.9x for cars, 3.7x for lamps,
+  4.5x for tables: categories with sub-types generalise least), so the pooled distance flags new
+  scenes of the broad categories; the per-class scale puts every class on the same footing.
 """
 
 from __future__ import annotations
@@ -39,12 +45,16 @@ class FeatureStats:
         between: (dim, dim) covariance of scene means around their class mean (shrunk, positive definite).
         within: (dim, dim) covariance of view features around their scene mean (shrunk).
         reference_views: (,) how many views each training scene mean averaged (harmonic mean).
+        class_scale: (n_classes,) mean squared distance of known validation scenes to their own
+            class mean (see :func:`fit_class_scale`), needed by ``class_mahalanobis``; None in
+            classifiers saved before it existed.
     """
 
     means: torch.Tensor
     between: torch.Tensor
     within: torch.Tensor
     reference_views: torch.Tensor
+    class_scale: torch.Tensor | None = None
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -103,12 +113,87 @@ def mahalanobis_score(features: torch.Tensor, stats: FeatureStats) -> torch.Tens
     Returns:
         scalar (float64), at most 0; the spread is widened for scenes with few views (see :class:`FeatureStats`).
     """
+    return -scene_distances(features, stats).min()
+
+
+def scene_distances(features: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
+    """(n_classes,) squared Mahalanobis distances of the scene's mean feature to each class mean (float64).
+
+    Args:
+        features: (n_views, dim) penultimate features of the scene's views.
+        stats: the two-level feature model (the spread is widened for scenes with few views).
+    """
     precision = scene_precision(stats, features.shape[0])
-    return -mahalanobis_distances(features.mean(dim=0, keepdim=True), stats.means, precision).min()
+    return mahalanobis_distances(features.mean(dim=0, keepdim=True), stats.means, precision)[0]
+
+
+def class_mahalanobis_from_distances(distances: torch.Tensor, class_scale: torch.Tensor) -> torch.Tensor:
+    """``-log(min_c distances[..., c] / class_scale[c])``: higher = closer to a known class.
+
+    Args:
+        distances: (..., n_classes) squared distances to each class mean.
+        class_scale: (n_classes,) positive typical distance of each class's own scenes.
+
+    Returns:
+        (...,) float64 scores; a distance of exactly 0 scores as ``-log(1e-12)``, not infinity.
+    """
+    ratio = distances.double() / class_scale.double()
+    return -torch.log(ratio.min(dim=-1).values.clamp_min(1e-12))
+
+
+def fit_class_scale(distances: torch.Tensor, labels: torch.Tensor, n_classes: int) -> torch.Tensor:
+    """Each class's typical squared distance: the mean, over known scenes of the class, of the distance to its own mean.
+
+    A class with no scene in ``distances`` gets the mean of the other classes' scales.
+
+    Args:
+        distances: (n_scenes, n_classes) squared distances of validation scenes to each class mean.
+        labels: (n_scenes,) the class of each scene.
+        n_classes: number of classes.
+
+    Returns:
+        (n_classes,) positive float64 scales.
+    """
+    if distances.shape[0] < 1:
+        raise ValueError("the class scale needs at least one known validation scene")
+    own = distances.double()[torch.arange(distances.shape[0]), labels]
+    scale = torch.full((n_classes,), float("nan"), dtype=torch.float64)
+    for c in range(n_classes):
+        if bool((labels == c).any()):
+            scale[c] = own[labels == c].mean()
+    scale = torch.where(torch.isnan(scale), scale[~torch.isnan(scale)].mean(), scale)
+    return scale.clamp_min(1e-12)
+
+
+def leave_one_out_class_scores(distances: torch.Tensor, labels: torch.Tensor, class_scale: torch.Tensor) -> torch.Tensor:
+    """``class_mahalanobis`` of the scenes the scale was fitted on, each without its own say in its class's scale.
+
+    A scene scored by a scale that includes its own distance looks more typical than a new scene
+    of the class would; calibrating a threshold on such scores flags too many new scenes (measured:
+    false unknowns 5-10 % of known test scenes against 0 % with these scores). A class with one
+    scene keeps its scale.
+
+    Args:
+        distances: (n_scenes, n_classes) distances of the scenes :func:`fit_class_scale` was given.
+        labels: (n_scenes,) their classes.
+        class_scale: (n_classes,) what :func:`fit_class_scale` returned for them.
+
+    Returns:
+        (n_scenes,) float64 scores.
+    """
+    d = distances.double()
+    own = d[torch.arange(d.shape[0]), labels]
+    counts = torch.bincount(labels, minlength=class_scale.numel()).double()[labels]
+    total = class_scale.double()[labels] * counts
+    loo = torch.where(counts > 1, (total - own) / (counts - 1).clamp_min(1), class_scale.double()[labels]).clamp_min(1e-12)
+    scales = class_scale.double().expand_as(d).clone()
+    scales[torch.arange(d.shape[0]), labels] = loo
+    return -torch.log((d / scales).min(dim=-1).values.clamp_min(1e-12))
 
 
 def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: FeatureStats | None) -> dict[str, float]:
-    """Every unknown score of one scene (``mahalanobis`` only when features and stats are given).
+    """Every unknown score of one scene (the Mahalanobis ones only when features and stats are given;
+    ``class_mahalanobis`` only when the stats hold a class scale).
 
     Args:
         logits: (n_views, n_classes).
@@ -117,7 +202,10 @@ def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: Fea
     """
     scores = {"msp": float(msp_score(logits)), "energy": float(energy_score(logits))}
     if features is not None and stats is not None:
-        scores["mahalanobis"] = float(mahalanobis_score(features, stats))
+        distances = scene_distances(features, stats)
+        scores["mahalanobis"] = float(-distances.min())
+        if stats.class_scale is not None:
+            scores["class_mahalanobis"] = float(class_mahalanobis_from_distances(distances, stats.class_scale))
     return scores
 
 

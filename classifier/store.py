@@ -135,6 +135,8 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
     tensors[STATS_PREFIX + "between"] = stats.between
     tensors[STATS_PREFIX + "within"] = stats.within
     tensors[STATS_PREFIX + "reference_views"] = stats.reference_views
+    if stats.class_scale is not None:
+        tensors[STATS_PREFIX + "class_scale"] = stats.class_scale
     return tensors
 
 
@@ -282,7 +284,8 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
     state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     model.load_state_dict(state, assign=True)
     try:
-        stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within", "reference_views")))
+        stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within", "reference_views")),
+                             class_scale=tensors.get(STATS_PREFIX + "class_scale"))
     except KeyError:
         raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within/reference_views)") from None
     dim = model.feature_dim
@@ -290,5 +293,10 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
         tuple(m.shape) != (dim, dim) for m in (stats.between, stats.within)
     ) or stats.reference_views.numel() != 1 or not float(stats.reference_views) >= 1:
         raise ClassifierError(f"{weights}: feature statistics have the wrong shape for {meta.arch}")
+    if stats.class_scale is not None and (tuple(stats.class_scale.shape) != (len(meta.categories),)
+                                          or not bool((stats.class_scale > 0).all())):
+        raise ClassifierError(f"{weights}: {STATS_PREFIX}class_scale must hold one positive value per category")
+    if stats.class_scale is None and "class_mahalanobis" in meta.thresholds:
+        raise ClassifierError(f"{weights}: {STATS_PREFIX}class_scale is missing but classifier.json calibrates class_mahalanobis")
     model.to(device).eval()
     return Classifier(meta, model, stats)

@@ -39,7 +39,19 @@ from classifier.config import DEFAULT_SCORE, SCORES, TrainConfig
 from classifier.data import ViewSet, augment_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
-from classifier.predict import FeatureStats, auroc, calibrate_threshold, fit_feature_stats, scene_probabilities, scene_scores
+import dataclasses
+
+from classifier.predict import (
+    FeatureStats,
+    auroc,
+    calibrate_threshold,
+    fit_class_scale,
+    fit_feature_stats,
+    leave_one_out_class_scores,
+    scene_distances,
+    scene_probabilities,
+    scene_scores,
+)
 from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, Classifier, ClassifierMeta, model_inputs, save_classifier, view_outputs
 
 log = logging.getLogger(__name__)
@@ -260,6 +272,10 @@ def calibrate(
     """Feature statistics of the training scenes, a threshold per score, and validation metrics.
 
     The statistics use the first ``config.stats_views`` views of each training scene, not augmented.
+    The class scale of ``class_mahalanobis`` comes from the known validation scenes
+    (:func:`~classifier.predict.fit_class_scale`); their own ``class_mahalanobis`` scores, for its
+    threshold and validation metrics, are leave-one-out scores
+    (:func:`~classifier.predict.leave_one_out_class_scores`), so they are as unbiased as a new scene's.
 
     Returns:
         stats, thresholds (score -> threshold keeping ``config.keep_fraction`` of ``val``), metrics.
@@ -269,9 +285,12 @@ def calibrate(
     train_features, _ = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta))
     stats = fit_feature_stats(train_features, sample.labels, sample.scene_index, len(categories), config.covariance_shrinkage)
     val_out = scene_outputs(model, val, meta)
-    known = score_table(val_out, stats)
-    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction) for name in SCORES}
     labels = [int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))]
+    distances = torch.stack([scene_distances(f, stats) for f, _ in val_out])
+    stats = dataclasses.replace(stats, class_scale=fit_class_scale(distances, torch.tensor(labels), len(categories)).float())
+    known = score_table(val_out, stats)
+    known["class_mahalanobis"] = leave_one_out_class_scores(distances, torch.tensor(labels), stats.class_scale)
+    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction) for name in SCORES}
     correct = torch.tensor([int(scene_probabilities(z).argmax()) == y for (_, z), y in zip(val_out, labels)])
     metrics: dict[str, Any] = {
         "val_scenes": len(val.scenes),

@@ -43,8 +43,10 @@ HOLDOUT = "sofa,vase"
 COLLECTION_ARGS = [
     "--categories", "airplane,car,chair,lamp,mug,sofa,table,vase", "--scenes-per-category", "40",
     "--views", "16", "--test-views", "8", "--resolution", "64", "--val-fraction", "0.2", "--test-fraction", "0.25",
-    "--seed", "0",
 ]
+SEED = 1
+"""Collection seed. Seed 0's test scenes were looked at while designing ``class_mahalanobis`` (see the
+design notes), so the recorded figures come from seed 1, whose scenes played no part in any choice."""
 TARGETS = {"known": 0.98, "detect": 0.90, "false_unknown": 0.05, "train_s": 600.0}
 DEFAULT_EXTRA = "--time-budget 500"  # leaves ~100 s of the 10 minutes for start-up, reading views and calibration
 
@@ -64,6 +66,15 @@ sofa and vase held out, 36 known and 12 held-out validation scenes; CPU shared a
   0.92-0.98: the directions in which training scene means barely vary are the informative ones. The covariance is widened by the view noise only for scenes with fewer views than
   the training scenes had, so a single photo is not flagged for being one view. Shrinkage 0.05 against 0.1:
   0.979 against 0.972.
+- **Per-class scale (`class_mahalanobis`, added after the seed-0 benchmark missed two targets: `mahalanobis`
+  kept 90 % of known test scenes right and not flagged, 10 % false unknown).** On the two networks trained on the seed-0
+  benchmark collection, the false unknowns were lamps and one table: the known
+  validation scenes sit 1.9x (car) to 4.5x (table) farther from their class mean than the training scenes, so one
+  pooled spread is too tight for the broad categories. Dividing each class's distance by its mean on the known
+  validation scenes raised the test AUROC from 0.963 / 0.971 to 1.000 / 1.000. With the threshold on those same
+  validation scenes, 5.0-8.3 % of known test scenes were still flagged (a scene scored by a scale that includes it
+  looks too typical); with leave-one-out validation scores, 0 %, detection 100 %. These were read off seed-0 *test*
+  scenes, so the figures above come from a fresh collection (seed 1) that played no part in the choice.
 - **Stem.** A 3x3 stride-2 stem without max-pool (`--stem 3x3s2`, 4x the positions) gave better features per
   image (validation AUROC 0.986 after 4 epochs against 0.979 for torchvision's stem after 9 epochs on the dev
   collection) but is 2.5-3x slower per step here: within the 10-minute budget on the benchmark collection it
@@ -141,7 +152,8 @@ def evaluate(collection: Path, classifier_dir: Path) -> dict:
     return out
 
 
-def section_text(result: dict, doc: dict, train_s: float, command: str, load_before: str, load_after: str, threads: int) -> str:
+def section_text(result: dict, doc: dict, train_s: float, command: str, load_before: str, load_after: str, threads: int,
+                 seed: int) -> str:
     holdout = ",".join(doc["holdout_categories"])
     val = doc["validation"]["scores"]
     t = doc["training"]
@@ -156,7 +168,7 @@ def section_text(result: dict, doc: dict, train_s: float, command: str, load_bef
         SECTION,
         "",
         f"`nerfmeta classifier train` on a generated collection of 8 categories x 40 scenes x (16 + 8) views at "
-        f"64 x 64 (`make-collection {' '.join(COLLECTION_ARGS)}`), categories **{holdout}** held out of training; "
+        f"64 x 64 (`make-collection {' '.join(COLLECTION_ARGS)} --seed {seed}`), categories **{holdout}** held out of training; "
         f"judged on the collection's **test** scenes (never used for training, calibration or choosing the score), "
         f"each classified from all its {'/'.join(map(str, result['views_per_scene']))} views as `nerfmeta classify` does.",
         "",
@@ -211,6 +223,7 @@ def main() -> int:
     parser.add_argument("--holdout", default=HOLDOUT, help=f"held-out categories (default {HOLDOUT})")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for training (default 1: fastest on a shared 2-core machine)")
     parser.add_argument("--extra", default=DEFAULT_EXTRA, help=f"more arguments for 'classifier train' (default '{DEFAULT_EXTRA}')")
+    parser.add_argument("--seed", type=int, default=SEED, help=f"seed of the generated collection (default {SEED})")
     parser.add_argument("--write", action="store_true", help="record the results in BENCHMARKS.md")
     args = parser.parse_args()
     holdout = args.holdout
@@ -222,7 +235,7 @@ def main() -> int:
         collection = work / "collection"
         if not (collection / "collection.json").is_file():
             print(f"generating the collection in {collection} ...", flush=True)
-            gen_s = run([sys.executable, "-m", "nerfmeta", "make-collection", str(collection), *COLLECTION_ARGS, "--overwrite"])
+            gen_s = run([sys.executable, "-m", "nerfmeta", "make-collection", str(collection), *COLLECTION_ARGS, "--seed", str(args.seed), "--overwrite"])
             print(f"  {gen_s:.0f} s", flush=True)
     out = work / "classifier"
     cmd = [sys.executable, "-m", "nerfmeta", "classifier", "train", str(collection), "--out", str(out),
@@ -236,7 +249,8 @@ def main() -> int:
     print(f"  {train_s:.0f} s (load average {load_after})", flush=True)
     doc = json.loads((out / "classifier.json").read_text())
     result = evaluate(collection, out)
-    text = section_text(result, doc, train_s, shown, load_before, load_after, args.threads)
+    seed = int(json.loads((collection / "collection.json").read_text())["config"]["seed"])
+    text = section_text(result, doc, train_s, shown, load_before, load_after, args.threads, seed)
     print(text)
     (work / "bench_result.json").write_text(json.dumps({"result": result, "train_s": train_s}, indent=2))
     if args.write:

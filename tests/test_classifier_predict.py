@@ -11,15 +11,19 @@ from classifier.predict import (
     FeatureStats,
     auroc,
     calibrate_threshold,
+    class_mahalanobis_from_distances,
     decide,
     energy_score,
+    fit_class_scale,
     fit_feature_stats,
     is_unknown,
+    leave_one_out_class_scores,
     mahalanobis_distances,
     mahalanobis_score,
     msp_score,
     scene_precision,
     scene_probabilities,
+    scene_scores,
 )
 
 CATS = ("chair", "mug")
@@ -134,3 +138,48 @@ def test_fit_feature_stats_measures_scene_and_view_spread():
     # shrinkage keeps everything invertible with one scene per class and one view per scene
     one = fit_feature_stats(torch.tensor([[1.0, 2.0], [3.0, 4.0]]), torch.tensor([0, 1]), torch.tensor([0, 1]), 2, 0.5)
     assert torch.isfinite(scene_precision(one, 1)).all()
+
+
+def test_class_scale_is_the_mean_own_class_distance_and_fills_absent_classes():
+    d = torch.tensor([[2.0, 50.0, 9.0], [4.0, 30.0, 9.0], [70.0, 10.0, 9.0]], dtype=torch.float64)
+    scale = fit_class_scale(d, torch.tensor([0, 0, 1]), 3)
+    # class 0: mean(2, 4) = 3; class 1: 10; class 2 has no scene: mean of the others, 6.5
+    assert scale.tolist() == pytest.approx([3.0, 10.0, 6.5])
+
+
+def test_class_mahalanobis_divides_by_each_class_scale_before_taking_the_nearest():
+    scale = torch.tensor([1.0, 100.0], dtype=torch.float64)
+    # raw distances say class 0 is nearer (4 < 50); scaled, class 1 is (0.5 < 4)
+    score = class_mahalanobis_from_distances(torch.tensor([4.0, 50.0], dtype=torch.float64), scale)
+    assert float(score) == pytest.approx(-math.log(0.5))
+    # a broad class (large scale) no longer flags its own far-out scenes; the pooled score would
+    assert float(class_mahalanobis_from_distances(torch.tensor([400.0, 300.0]), scale)) > float(
+        class_mahalanobis_from_distances(torch.tensor([20.0, 2000.0]), scale))
+    assert math.isfinite(float(class_mahalanobis_from_distances(torch.zeros(2), scale)))
+
+
+def test_leave_one_out_scores_leave_each_scene_out_of_its_own_class_scale():
+    d = torch.tensor([[1.0, 90.0], [3.0, 80.0], [8.0, 70.0], [60.0, 5.0]], dtype=torch.float64)
+    labels = torch.tensor([0, 0, 0, 1])
+    scale = fit_class_scale(d, labels, 2)  # class 0: 4, class 1: 5
+    loo = leave_one_out_class_scores(d, labels, scale)
+    # scene 2 (distance 8) against the mean of the other two (2): ratio 4, not 8 / 4 = 2
+    assert float(loo[2]) == pytest.approx(-math.log(4.0))
+    assert float(loo[0]) == pytest.approx(-math.log(1.0 / 5.5))
+    # a class with one scene keeps its scale; the nearest class may change (scene 3: 5 / 5 = 1 < 60 / 4)
+    assert float(loo[3]) == pytest.approx(0.0, abs=1e-12)
+    # leaving a scene out makes the atypical ones (farther than their class's mean) look less typical
+    full = class_mahalanobis_from_distances(d, scale)
+    assert float(loo[2]) < float(full[2]) and float(loo[0]) > float(full[0])
+
+
+def test_scene_scores_include_class_mahalanobis_only_with_a_class_scale():
+    feats = torch.tensor([[1.0, 0.0], [3.0, 0.0]])
+    logits = torch.zeros(2, 2)
+    assert "class_mahalanobis" not in scene_scores(logits, feats, _stats(1.0, 0.0, reference=2.0))
+    stats = FeatureStats(*_stats(1.0, 0.0, reference=2.0).__dict__.values())
+    stats = FeatureStats(stats.means, stats.between, stats.within, stats.reference_views, torch.tensor([2.0, 1.0]))
+    scores = scene_scores(logits, feats, stats)
+    # distances (4, 17) -> ratios (2, 17): -log 2
+    assert scores["mahalanobis"] == pytest.approx(-4.0)
+    assert scores["class_mahalanobis"] == pytest.approx(-math.log(2.0))

@@ -26,15 +26,16 @@ from nerfmeta.errors import ConfigError, NerfmetaError
 CATS = ("chair", "mug", "table")
 
 
-def _classifier(seed: int = 0) -> Classifier:
+def _classifier(seed: int = 0, class_scale: bool = True) -> Classifier:
     model = build_model("resnet18", len(CATS), seed=seed).eval()
     g = torch.Generator().manual_seed(seed)
     dim = model.feature_dim
-    stats = FeatureStats(torch.randn(len(CATS), dim, generator=g), torch.eye(dim) * 0.5, torch.eye(dim) * 2.0, torch.tensor(8.0))
+    stats = FeatureStats(torch.randn(len(CATS), dim, generator=g), torch.eye(dim) * 0.5, torch.eye(dim) * 2.0, torch.tensor(8.0),
+                         torch.tensor([300.0, 100.0, 200.0]) if class_scale else None)
     meta = ClassifierMeta(
         categories=CATS, arch="resnet18", stem="imagenet", input_size=16, background=(1.0, 1.0, 1.0),
-        mean=(0.5, 0.5, 0.5), std=(0.25, 0.25, 0.25), score="mahalanobis", threshold=-100.0,
-        thresholds={"msp": 0.5, "energy": 1.0, "mahalanobis": -100.0},
+        mean=(0.5, 0.5, 0.5), std=(0.25, 0.25, 0.25), score="class_mahalanobis", threshold=-1.0,
+        thresholds={"msp": 0.5, "energy": 1.0, "mahalanobis": -100.0, "class_mahalanobis": -1.0},
     )
     return Classifier(meta, model, stats)
 
@@ -67,6 +68,23 @@ def test_save_then_load_gives_identical_predictions(saved: Path):
     doc = json.loads((saved / META_FILE).read_text())
     assert doc["categories"] == list(CATS) and doc["input"]["size"] == 16 and doc["note"] == "test"
     assert len(doc["weights"]["sha256"]) == 64
+
+
+def test_class_scale_is_saved_and_required_by_its_score(saved: Path, tmp_path: Path):
+    loaded = load_classifier(saved)
+    assert loaded.stats.class_scale.tolist() == [300.0, 100.0, 200.0]
+    assert classify_views(loaded, _views()).score_name == "class_mahalanobis"
+    old = _classifier(class_scale=False)
+    save_classifier(tmp_path / "old", old, {})
+    with pytest.raises(ClassifierError, match="class_scale is missing") as err:
+        load_classifier(tmp_path / "old")
+    assert "\n" not in str(err.value)
+    # a classifier saved before the score existed (no scale, no such threshold) still loads
+    thresholds = {k: v for k, v in old.meta.thresholds.items() if k != "class_mahalanobis"}
+    older = Classifier(ClassifierMeta(**{**old.meta.__dict__, "score": "mahalanobis", "threshold": -100.0,
+                                         "thresholds": thresholds}), old.model, old.stats)
+    save_classifier(tmp_path / "older", older, {})
+    assert classify_views(load_classifier(tmp_path / "older"), _views()).score_name == "mahalanobis"
 
 
 def test_build_model_is_a_function_of_the_seed_and_leaves_global_rng_alone():

@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from classifier.config import NO_AUGMENT, TrainConfig
+from classifier.config import DEFAULT_SCORE, NO_AUGMENT, SCORES, TrainConfig
 from classifier.data import composite, load_view_set, normalize
 from classifier.inputs import read_scene_views
 from classifier.model import build_model
@@ -57,12 +57,12 @@ def test_lr_factor_warms_up_then_decays_to_zero():
 
 def test_auto_score_picks_the_best_validation_auroc_else_the_default():
     with_holdout = {"scores": {"msp": {"holdout_val_auroc": 0.9}, "energy": {"holdout_val_auroc": 0.97},
-                               "mahalanobis": {"holdout_val_auroc": 0.95}}}
+                               "mahalanobis": {"holdout_val_auroc": 0.95}, "class_mahalanobis": {"holdout_val_auroc": 0.96}}}
     assert select_score("auto", with_holdout)[0] == "energy"
-    tie = {"scores": {k: {"holdout_val_auroc": 0.9} for k in ("msp", "energy", "mahalanobis")}}
-    assert select_score("auto", tie)[0] == "mahalanobis"
-    without = {"scores": {k: {} for k in ("msp", "energy", "mahalanobis")}}
-    assert select_score("auto", without) == ("mahalanobis", select_score("auto", without)[1])
+    tie = {"scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
+    assert select_score("auto", tie)[0] == DEFAULT_SCORE == "class_mahalanobis"
+    without = {"scores": {k: {} for k in SCORES}}
+    assert select_score("auto", without) == (DEFAULT_SCORE, select_score("auto", without)[1])
     assert select_score("msp", with_holdout) == ("msp", "given")
 
 
@@ -95,7 +95,7 @@ def test_train_classifier_writes_a_complete_folder_and_reloads(collection: Path,
     doc = train_classifier(config, collection, out)
     assert sorted(p.name for p in out.iterdir()) == sorted([WEIGHTS_FILE, META_FILE, HISTORY_FILE, CURVE_FILE])
     assert doc["categories"] == ["chair", "mug"] and doc["holdout_categories"] == ["airplane"]
-    assert doc["unknown"]["score"] == "energy" and set(doc["unknown"]["thresholds"]) == {"msp", "energy", "mahalanobis"}
+    assert doc["unknown"]["score"] == "energy" and set(doc["unknown"]["thresholds"]) == set(SCORES)
     assert doc["input"]["normalization"]["mean"] == list(config.mean) and doc["recipe"]["epochs"] == 1
     scores = doc["validation"]["scores"]
     assert "holdout_val_auroc" in scores["mahalanobis"] and doc["validation"]["holdout_val_scenes"] == 1

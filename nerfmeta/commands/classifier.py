@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-size", type=int, default=_DEFAULT.batch_size, metavar="N", help=f"views per step (default {_DEFAULT.batch_size})")
     p.add_argument("--lr", type=float, default=_DEFAULT.lr, help=f"peak AdamW learning rate (default {_DEFAULT.lr:g})")
     p.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop optimising after S seconds (the schedule follows time)")
-    p.add_argument("--score", choices=("auto", *SCORES), default=_DEFAULT.score, help="unknown score used by the decision; auto (default) picks the best validation AUROC on held-out categories' val scenes, else mahalanobis (all are calibrated and reported)")
+    p.add_argument("--score", choices=("auto", *SCORES), default=_DEFAULT.score, help="unknown score used by the decision; auto (default) picks the best validation AUROC on held-out categories' val scenes, else class_mahalanobis (all are calibrated and reported)")
     p.add_argument("--keep-fraction", type=float, default=_DEFAULT.keep_fraction, metavar="F", help=f"fraction of known validation scenes the threshold keeps (default {_DEFAULT.keep_fraction:g})")
     p.add_argument("--input-size", type=int, default=_DEFAULT.input_size, metavar="PX", help=f"network input side in pixels (default {_DEFAULT.input_size})")
     p.add_argument("--stem", choices=STEMS, default=_DEFAULT.stem, help=f"ResNet stem: torchvision's 7x7/2 conv + max-pool, or a 3x3 conv of stride 2 or 1 without max-pool (more resolution, more compute; default {_DEFAULT.stem})")
