@@ -269,9 +269,8 @@ def plan(args, collection_dir: Path, out: Path, metas: dict[str, Path]) -> Plan:
                 fit("seen", "scratch-black", r, "scratch", 0, black)
                 fit("seen", "category-black", r, f"category:{model_dir}", k, black)
             if backbone in args.freeze_sweep and i < 2:
-                for kk in b["sweep"]:
-                    if kk != k:
-                        fit("sweep", f"freeze-{kk}", r, f"category:{model_dir}", kk)
+                for kk in b["sweep"]:  # K = the default too, so the sweep's scenes are compared with themselves
+                    fit("sweep", f"freeze-{kk}", r, f"category:{model_dir}", kk)
         for r in unseen_scenes:
             fit("unseen", "scratch", r, "scratch")
             if backbone in metas:
@@ -395,13 +394,11 @@ def plot(results: list[dict], backbone: str, x_key: str, path: Path) -> None:
     import numpy as np
 
     mine = [r for r in results if r["job"]["backbone"] == backbone]
-    sweep_scenes = {r["job"]["scene_name"] for r in mine if r["job"]["group"] == "sweep"}
     panels = {
         "seen categories": lambda j: j["group"] == "seen" and j["method"] not in CONTROLS,
         "unseen (held-out) categories": lambda j: j["group"] == "unseen",
         "controls (seen scenes)": lambda j: j["group"] == "seen" and j["method"] in CONTROLS,
-        "freeze sweep (2 seen scenes)": lambda j: (j["group"] == "sweep" or (j["group"] == "seen" and j["method"] == "category"
-                                                                                and j["scene_name"] in sweep_scenes)),
+        "freeze sweep (2 seen scenes)": lambda j: j["group"] == "sweep",  # K = the default is a sweep job too
     }
     panels = {k: f for k, f in panels.items() if any(f(r["job"]) for r in mine)}
     colours: dict[str, str] = {}
@@ -452,9 +449,12 @@ def _fmt_spread(d: dict | None, unit: str = "", digits: int = 0) -> str:
 
 def section_text(agg: dict, meta: dict) -> str:
     lines = [SECTION, "", meta["intro"], "", "```", meta["command"], "```", ""]
-    lines += [f"Machine: {MACHINE}. Date: {meta['date']}. Load average at start {meta['load_start']}, "
-              f"at end {meta['load_end']}; {meta['workers']} fits ran at a time (one torch thread each). "
-              f"Wall time of this invocation {meta['wall_min']:.1f} min ({meta['jobs']}).", ""]
+    lines += [f"Machine: {MACHINE}. Date: {meta['date']}. This invocation: {meta['wall_min']:.1f} min ({meta['jobs']}). "
+              "The fits were measured in these invocations (load average 1 / 5 / 15 min at start and end; fits "
+              "at a time, one torch thread each):", ""]
+    lines += [f"- {r['date']}: {r['new_fits']} fits, {r['workers']} at a time, {r['wall_min']:.1f} min, load "
+              f"{r['load_start']} -> {r['load_end']}" for r in meta["invocations"]]
+    lines += [""]
     lines += meta["setup"] + [""]
     for backbone, groups in agg.items():
         lines += [f"### {backbone}", ""]
@@ -487,6 +487,25 @@ def section_text(agg: dict, meta: dict) -> str:
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
+
+
+INVOCATIONS = "invocations.json"
+"""Per work folder: each invocation that ran fits, with its load and the fits it ran (the report cites those
+that produced the fits it shows, so a rerun that reuses every fit does not pass off its own quiet load)."""
+
+
+def record_invocation(out: Path, jobs: list, results: list[dict], facts: dict[str, Any]) -> list[dict]:
+    """Append this invocation to ``OUT/invocations.json`` when it ran fits; return the invocations behind ``jobs``."""
+    path = out / INVOCATIONS
+    log_ = json.loads(path.read_text()) if path.is_file() else []
+    ran = [job.out for job, r in zip(jobs, results) if not r.get(CACHED)]
+    if ran:
+        log_.append({**facts, "new_fits": len(ran), "fits": ran})
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(log_, indent=1))
+        os.replace(tmp, path)
+    wanted = {job.out for job in jobs}
+    return [{k: v for k, v in r.items() if k != "fits"} for r in log_ if wanted & set(r["fits"])]
 
 
 def _load() -> str:
@@ -544,6 +563,9 @@ def main() -> int:
     agg = aggregate(results, args.iters)
     wall = (time.time() - start) / 60
     load_end = _load()
+    invocations = record_invocation(out, p.fits, results, {
+        "date": datetime.date.today().isoformat(), "workers": args.workers, "wall_min": round(wall, 1),
+        "load_start": load_start, "load_end": load_end})
     (out / "results.json").write_text(json.dumps({"aggregate": agg, "runs": results}, indent=1, default=str))
     for backbone, groups in agg.items():
         for group, methods in groups.items():
@@ -565,6 +587,7 @@ def main() -> int:
         "date": datetime.date.today().isoformat(), "load_start": load_start, "load_end": load_end,
         "workers": args.workers, "wall_min": wall, "setup": setup_lines(args, metas, models),
         "jobs": f"{len(p.pretrain)} category models and {len(p.fits)} fits, {reused} of them reused from an earlier run",
+        "invocations": invocations,
         "findings": notes.read_text().splitlines() if notes.exists() else [],
     }
     write_benchmark_section(Path(args.benchmarks), SECTION, section_text(agg, meta))
@@ -596,7 +619,26 @@ def setup_lines(args, metas: dict[str, Path], models: list[dict]) -> list[str]:
                      f"{b['batch_rays']} rays/iteration; category models: {args.pretrain_iters or b['pretrain_iters']} "
                      f"iterations on all training rays of the category; transfer with --freeze {k}"
                      + (f"; meta-init from {metas[backbone]}" if backbone in metas else "; no meta-initialisation given") + ".")
+        if backbone in metas:
+            lines.append(meta_training_line(backbone, metas[backbone]))
     return lines
+
+
+def meta_training_line(backbone: str, folder: Path) -> str:
+    """What the meta-initialisation of ``backbone`` cost to train (from its ``summary.json``), one line."""
+    summary_path = folder / "summary.json"
+    if not summary_path.is_file():
+        return f"{backbone} meta-initialisation: no summary.json in {folder} (training time unknown)."
+    s = json.loads(summary_path.read_text())
+    held = s.get("held_out") or {}
+    lr = s.get("inner_lr")
+    lr_text = ", ".join(f"{k} {v:g}" for k, v in lr.items()) if isinstance(lr, dict) else f"{lr}"
+    return (f"{backbone} meta-initialisation: {s.get('algo')} ({s.get('engine')}), {s.get('meta_steps')} meta-steps of "
+            f"{s.get('meta_batch')} tasks x {s.get('inner_steps')} inner steps (inner lr {lr_text}), "
+            f"{len(s.get('scenes', []))} training scenes of {len(s.get('categories', []))} categories: "
+            f"**{s.get('time_s', 0) / 60:.1f} min of meta-training on this machine** ({s.get('world_size', 1)} process, one torch thread); "
+            f"query PSNR on the seen categories' held-out scenes after {held.get('inner_steps', '?')} inner steps "
+            f"{held.get('query_psnr_before', float('nan')):.2f} -> {held.get('query_psnr_after', float('nan')):.2f} dB.")
 
 
 if __name__ == "__main__":
