@@ -34,6 +34,8 @@ if str(ROOT) not in sys.path:
 SECTION = "## Classify-and-fit with the model zoo"
 MACHINE = "2-core CPU, no GPU"
 N_KNOWN, N_UNSEEN = 10, 5
+ZOO_MARKER = "bench_zoo_sha256.txt"
+"""A routed run's record of the zoo manifest it was fitted with: a run is reused only with the same zoo."""
 
 
 def make_scenes(out: Path, seed: int, zoo) -> list[tuple[str, str, Path]]:
@@ -63,17 +65,23 @@ def fit_one(job: tuple[str, str, str, str]) -> dict:
     from nerfmeta.route import classify_and_fit
     from nerfmeta.zoo import load_zoo
 
+    from nerfmeta.io import sha256_file
+
     torch.set_num_threads(1)
     name, scene, zoo_dir, out = job
-    if (Path(out) / "summary.json").is_file() and "comparison" in json.loads((Path(out) / "summary.json").read_text()):
-        return json.loads((Path(out) / "summary.json").read_text())
+    zoo_key, marker = sha256_file(Path(zoo_dir) / "manifest.json"), Path(out) / ZOO_MARKER
+    if (Path(out) / "summary.json").is_file() and "comparison" in json.loads((Path(out) / "summary.json").read_text()) \
+            and marker.is_file() and marker.read_text() == zoo_key:
+        return json.loads((Path(out) / "summary.json").read_text())  # fitted with this very zoo
     zoo = load_zoo(zoo_dir)
     fit = zoo.fit
     config = RunConfig(scene=scene, backbone=zoo.backbone, model=dict(fit["model"]), downscale=2.0,
                        fit=FitConfig(iters=fit["iters"], batch_rays=fit["batch_rays"], eval_every=fit["eval_every"], checkpoint_every=0,
                                      eval_views=fit.get("eval_views", 4)),
                        snapshot_iters=tuple(i for i in SNAPSHOT_ITERS if i <= fit["iters"]))
-    return classify_and_fit(config, out, zoo=zoo, compare=("scratch",), overwrite=True)
+    summary = classify_and_fit(config, out, zoo=zoo, compare=("scratch",), overwrite=True)
+    marker.write_text(zoo_key)
+    return summary
 
 
 def meta_on_known(job: tuple[str, str, str, str]) -> dict:
