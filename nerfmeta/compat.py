@@ -12,6 +12,7 @@ torchvision's own "Couldn't load custom C++ ops" error if someone calls them.
 from __future__ import annotations
 
 import functools
+import threading
 from types import ModuleType
 
 import torch
@@ -21,6 +22,7 @@ _MISSING_OP_SCHEMAS = {
     "qnms": "qnms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor",
 }
 _shim_library: torch.library.Library | None = None
+_lock = threading.Lock()  # the first import defines the shim once, even when several threads ask at the same time
 
 
 def _torchvision_ops_load() -> bool:
@@ -43,12 +45,13 @@ def _torchvision_ops_load() -> bool:
 
 @functools.lru_cache(maxsize=None)
 def import_torchvision() -> ModuleType:
-    """Return the ``torchvision`` module, importable even when its C++ ops are unavailable."""
+    """Return the ``torchvision`` module, importable even when its C++ ops are unavailable (thread-safe)."""
     global _shim_library
-    if not _torchvision_ops_load():
-        _shim_library = torch.library.Library("torchvision", "DEF")
-        for schema in _MISSING_OP_SCHEMAS.values():
-            _shim_library.define(schema)
-    import torchvision
+    with _lock:
+        if _shim_library is None and not _torchvision_ops_load():
+            _shim_library = torch.library.Library("torchvision", "DEF")
+            for schema in _MISSING_OP_SCHEMAS.values():
+                _shim_library.define(schema)
+        import torchvision
 
     return torchvision
