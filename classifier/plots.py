@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from nerfmeta.io import atomic_path  # noqa: E402
+from nerfmeta.report.plots import save_figure  # noqa: E402
 
 
 def plot_training_curve(history: Mapping[str, Any], path: str | os.PathLike, *, title: str = "") -> None:
@@ -45,10 +45,7 @@ def plot_training_curve(history: Mapping[str, Any], path: str | os.PathLike, *, 
         ax.legend(lines, labels, fontsize=8, loc="lower left")
     if title:
         ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _smooth(values: np.ndarray, window: int) -> np.ndarray:

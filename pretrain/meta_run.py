@@ -548,6 +548,8 @@ def plot_query_curve(records: Sequence[dict[str, Any]], path: Path, *, title: st
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from nerfmeta.report.plots import save_figure
+
     steps = np.array([r["step"] for r in records], dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
     for key, label, color in (("query_psnr", "query PSNR after adaptation", "C0"), ("init_psnr", "initialisation (before adaptation)", "C1")):
@@ -561,10 +563,7 @@ def plot_query_curve(records: Sequence[dict[str, Any]], path: Path, *, title: st
     if title:
         ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _smooth(values, window: int = 10):

@@ -393,6 +393,8 @@ def plot(results: list[dict], backbone: str, x_key: str, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from nerfmeta.report.plots import save_figure
+
     mine = [r for r in results if r["job"]["backbone"] == backbone]
     panels = {
         "seen categories": lambda j: j["group"] == "seen" and j["method"] not in CONTROLS,
@@ -428,12 +430,7 @@ def plot(results: list[dict], backbone: str, x_key: str, path: Path) -> None:
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8, loc="lower right")
     axes[0][0].set_ylabel("test PSNR (dB), mean +- sd over scenes")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
-    os.replace(tmp, path)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _fmt(ms: tuple[float, float]) -> str:

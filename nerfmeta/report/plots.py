@@ -18,6 +18,14 @@ if TYPE_CHECKING:
     from nerfmeta.report.curves import Band
 
 
+def save_figure(fig, path: str | os.PathLike) -> None:
+    """Lay out a pyplot figure, write it as PNG atomically (a temporary file renamed into place), and close it."""
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
 def plot_psnr_curves(
     runs: Mapping[str, Sequence[Mapping]], x_key: str, path: str | os.PathLike, *, title: str = ""
 ) -> None:
@@ -46,10 +54,7 @@ def plot_psnr_curves(
     if title:
         ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _smooth(values: np.ndarray, window: int = 25) -> np.ndarray:
@@ -116,10 +121,7 @@ def plot_image_grid(
                 ax.set_xlabel(cell_notes[i][j], fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_psnr_bands(
@@ -148,7 +150,4 @@ def plot_psnr_bands(
         ax.set_title(title, fontsize=10)
     if ax.lines:
         ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
