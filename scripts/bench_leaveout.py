@@ -162,79 +162,70 @@ def scenes(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
 # ----- parts ------------------------------------------------------------------------------------------
 
 
-def part_grid(args, sc) -> list[dict]:
+def seeded_fits(args, sc, part: str, variants, settings, describe) -> list[dict]:
+    """Per scene and variant, ``args.reps`` scratch grid fits (seeds 0, 1, ...) into ``WORK/PART/SCENE/STEM_SEED``.
+
+    Args:
+        part: the part's name (folder and progress prefix).
+        variants: (label, folder stem, extra CLI flags) per variant.
+        settings: scene name -> the part's own CLI flags (iterations or budget, evaluation, renders).
+        describe: (scene name, run) -> the progress line's figures.
+
+    Returns:
+        one row per scene and variant: ``{"scene", "variant", "runs"}``.
+    """
     rows = []
     for name in args.scenes:
         s = sc[name]
-        for variant, extra in VARIANTS:
-            if args.variants and variant not in args.variants:
-                continue
+        for variant, stem, extra in variants:
             runs = []
             for k in range(args.reps):
-                cli = [s["path"], *s["cli"], "--init", "scratch", "--backbone", "grid", "--iters", str(ITERS[name]),
-                       "--eval-every", "50", "--checkpoint-every", "0", "--seed", str(k), "--renders", "0", *extra]
-                r = fit_run(args.work / "grid" / name / f"{variant}_{k}", cli[0], cli[1:], args.reuse)
+                cli = [*s["cli"], "--init", "scratch", "--backbone", "grid", *settings(name), "--checkpoint-every", "0",
+                       "--seed", str(k), *extra]
+                r = fit_run(args.work / part / name / f"{stem}_{k}", s["path"], cli, args.reuse)
                 runs.append(r)
-                sm = r["summary"]
-                print(f"[grid] {name} {variant} seed {k}: {sm['test_psnr']:.2f} dB, {sm['iters']} iters, "
-                      f"to {FIXED_PSNR[name]:g} dB {fmt(time_to(r, FIXED_PSNR[name]))} s, "
-                      f"vd={sm['decisions'].get('view_dependent', {}).get('value')}, load {r['load']}", flush=True)
+                print(f"[{part}] {name} {variant} seed {k}: {describe(name, r)}, load {r['load']}", flush=True)
             rows.append({"scene": name, "variant": variant, "runs": runs})
     return rows
+
+
+def _view_decision(summary: dict) -> Any:
+    return summary["decisions"].get("view_dependent", {}).get("value")
+
+
+def part_grid(args, sc) -> list[dict]:
+    variants = [(v, v, extra) for v, extra in VARIANTS if not args.variants or v in args.variants]
+    return seeded_fits(
+        args, sc, "grid", variants,
+        lambda name: ["--iters", str(ITERS[name]), "--eval-every", "50", "--renders", "0"],
+        lambda name, r: (f"{r['summary']['test_psnr']:.2f} dB, {r['summary']['iters']} iters, to {FIXED_PSNR[name]:g} dB "
+                         f"{fmt(time_to(r, FIXED_PSNR[name]))} s, vd={_view_decision(r['summary'])}"))
 
 
 def part_budget(args, sc) -> list[dict]:
-    rows = []
-    for name in args.scenes:
-        s = sc[name]
-        for variant, extra in BUDGET_VARIANTS:
-            runs = []
-            for k in range(args.reps):
-                cli = [*s["cli"], "--init", "scratch", "--backbone", "grid", "--time-budget", f"{BUDGET[name]:g}",
-                       "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(k), "--renders", "0", *extra]
-                r = fit_run(args.work / "budget" / name / f"{variant}_{k}", s["path"], cli, args.reuse)
-                runs.append(r)
-                sm = r["summary"]
-                print(f"[budget] {name} {variant} seed {k}: {sm['test_psnr']:.2f} dB, {sm['iters']} iters in {sm['time_s']:.1f} s, "
-                      f"vd={sm['decisions'].get('view_dependent', {}).get('value')}, load {r['load']}", flush=True)
-            rows.append({"scene": name, "variant": variant, "runs": runs})
-    return rows
+    return seeded_fits(
+        args, sc, "budget", [(v, v, extra) for v, extra in BUDGET_VARIANTS],
+        lambda name: ["--time-budget", f"{BUDGET[name]:g}", "--eval-every", "0", "--renders", "0"],
+        lambda name, r: (f"{r['summary']['test_psnr']:.2f} dB, {r['summary']['iters']} iters in {r['summary']['time_s']:.1f} s, "
+                         f"vd={_view_decision(r['summary'])}"))
 
 
 def part_stage(args, sc) -> list[dict]:
-    rows = []
-    for name in args.scenes:
-        s = sc[name]
-        for variant, extra in (("stage-end evaluation", []), ("--no-stage-end-eval", ["--no-stage-end-eval"])):
-            runs = []
-            for k in range(args.reps):
-                cli = [*s["cli"], "--init", "scratch", "--backbone", "grid", "--target-psnr", f"{STAGE_TARGET[name]:g}",
-                       "--iters", "3000", "--eval-every", "500", "--checkpoint-every", "0", "--seed", str(k), *extra]
-                r = fit_run(args.work / "stage" / name / f"{variant.strip('-')}_{k}", s["path"], cli, args.reuse)
-                runs.append(r)
-                sm = r["summary"]
-                print(f"[stage] {name} {variant} seed {k}: stopped after {sm['iters']} iters, {sm['time_s']:.1f} s "
-                      f"({sm['stop_reason']}), {sm['test_psnr']:.2f} dB, wall {r['wall_s']:.1f} s, load {r['load']}", flush=True)
-            rows.append({"scene": name, "variant": variant, "runs": runs})
-    return rows
+    return seeded_fits(
+        args, sc, "stage",
+        [("stage-end evaluation", "stage-end evaluation", []), ("--no-stage-end-eval", "no-stage-end-eval", ["--no-stage-end-eval"])],
+        lambda name: ["--target-psnr", f"{STAGE_TARGET[name]:g}", "--iters", "3000", "--eval-every", "500"],
+        lambda name, r: (f"stopped after {r['summary']['iters']} iters, {r['summary']['time_s']:.1f} s "
+                         f"({r['summary']['stop_reason']}), {r['summary']['test_psnr']:.2f} dB, wall {r['wall_s']:.1f} s"))
 
 
 def part_eval(args, sc) -> list[dict]:
-    rows = []
-    for name in args.scenes:
-        s = sc[name]
-        for variant, extra in (("SSIM + 4 renders", []), ("--no-eval-ssim --renders 0", ["--no-eval-ssim", "--renders", "0"])):
-            runs = []
-            for k in range(args.reps):
-                cli = [*s["cli"], "--init", "scratch", "--backbone", "grid", "--iters", "200", "--eval-every", "0",
-                       "--checkpoint-every", "0", "--seed", str(k), *extra]
-                r = fit_run(args.work / "eval" / name / f"{'lean' if extra else 'full'}_{k}", s["path"], cli, args.reuse)
-                runs.append(r)
-                sm = r["summary"]
-                print(f"[eval] {name} {variant} seed {k}: eval {sm['eval_time_s']:.2f} s, wall {r['wall_s']:.1f} s, "
-                      f"SSIM {sm['test_ssim']}, load {r['load']}", flush=True)
-            rows.append({"scene": name, "variant": variant, "runs": runs})
-    return rows
+    return seeded_fits(
+        args, sc, "eval",
+        [("SSIM + 4 renders", "full", []), ("--no-eval-ssim --renders 0", "lean", ["--no-eval-ssim", "--renders", "0"])],
+        lambda name: ["--iters", "200", "--eval-every", "0"],
+        lambda name, r: (f"eval {r['summary']['eval_time_s']:.2f} s, wall {r['wall_s']:.1f} s, "
+                         f"SSIM {r['summary']['test_ssim']}"))
 
 
 def graph_bytes(init_dir: Path, scene_path: str, freeze: int, bookkeeping_only: bool, batch: int) -> tuple[int, float]:
