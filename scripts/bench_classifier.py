@@ -260,18 +260,16 @@ def train_run(collection: Path, work: Path, train_seed: int, args: argparse.Name
     """Train (or reuse) the classifier of one training seed in ``work/classifier_seedS`` (a subprocess); its facts."""
     out = work / f"classifier_seed{train_seed}"
     record = out / "bench_run.json"
-    cmd = [sys.executable, "-m", "nerfmeta", "classifier", "train", str(collection), "--out", str(out),
-           "--holdout-categories", args.holdout, "--threads", str(args.threads), "--seed", str(train_seed), "--overwrite",
-           *shlex.split(args.extra)]
-    shown = cmd[cmd.index("train") + 2:]
-    if record.is_file() and json.loads(record.read_text()).get("args") == shown[2:]:
-        facts = json.loads(record.read_text())
+    train_args = ["--holdout-categories", args.holdout, "--threads", str(args.threads), "--seed", str(train_seed),
+                  "--overwrite", *shlex.split(args.extra)]
+    facts = json.loads(record.read_text()) if record.is_file() else {}
+    if facts.get("args") == train_args:  # trained before with the same arguments
         print(f"seed {train_seed}: reusing {out} ({facts['train_s']:.0f} s when it was trained)", flush=True)
     else:
         load_before = load_average()
         print(f"seed {train_seed}: training (load average {load_before}) ...", flush=True)
-        train_s = run(cmd)
-        facts = {"args": shown[2:], "train_s": train_s, "load_before": load_before, "load_after": load_average()}
+        train_s = run([sys.executable, "-m", "nerfmeta", "classifier", "train", str(collection), "--out", str(out), *train_args])
+        facts = {"args": train_args, "train_s": train_s, "load_before": load_before, "load_after": load_average()}
         record.write_text(json.dumps(facts, indent=1))
         print(f"seed {train_seed}: {train_s:.0f} s (load average {facts['load_after']})", flush=True)
     return {"train_seed": train_seed, "out": out, **{k: facts[k] for k in ("train_s", "load_before", "load_after")}}
