@@ -310,7 +310,7 @@ def main() -> int:
     print(text)
     (work / "bench_result.json").write_text(json.dumps([{k: r[k] for k in ("train_seed", "result", "train_s")} for r in runs], indent=2))
     if args.write:
-        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        from benchlib.sections import write_section as write_benchmark_section
         write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0

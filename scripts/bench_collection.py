@@ -105,7 +105,7 @@ def main() -> int:
     print(f"median {median:.1f} s, min {min(times):.1f} s, max {max(times):.1f} s, spread {spread:.1f} s; "
           f"median CPU {statistics.median(cpus):.1f} s; outputs {'identical' if identical else 'DIFFER'}; target < {TARGET_S:.0f} s")
     if not args.no_write:
-        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        from benchlib.sections import write_section as write_benchmark_section
         write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, section_text(times, cpus, identical, loads))
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0 if identical and median < TARGET_S else 1

@@ -515,7 +515,7 @@ def main() -> int:
     text = section(results, args)
     print(text)
     if args.write:
-        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        from benchlib.sections import write_section as write_benchmark_section
         write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, text)
         print(f"updated {ROOT / 'BENCHMARKS.md'} ({SECTION})")
     return 0

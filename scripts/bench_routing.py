@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += control_table(scenes, summaries, controls)
     print("\n".join(lines))
     if args.write:
-        from nerfmeta.report.benchmarks import write_section as write_benchmark_section
+        from benchlib.sections import write_section as write_benchmark_section
         write_benchmark_section(ROOT / "BENCHMARKS.md", SECTION, "\n".join(lines))
         print(f"updated BENCHMARKS.md ({SECTION})")
     return 0

@@ -57,8 +57,8 @@ if str(ROOT) not in sys.path:  # the pretrain/ package, when the checkout is not
 
 import torch  # noqa: E402
 
+from benchlib.sections import write_section as write_benchmark_section  # noqa: E402
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection  # noqa: E402
-from nerfmeta.report.benchmarks import write_section as write_benchmark_section  # noqa: E402
 from nerfmeta.data import load_scene  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig  # noqa: E402

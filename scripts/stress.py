@@ -1,6 +1,6 @@
 """Stiff and extreme cases (issue #8): run the stress table and record it in BENCHMARKS.md.
 
-Every case of :data:`nerfmeta.stress.CASES` writes its scene into a temporary folder, runs the
+Every case of :data:`benchlib.stress.CASES` writes its scene into a temporary folder, runs the
 real fit (``run_fit``; ``meta_train`` for the meta-learning rows) with each backbone it applies
 to, and checks for NaN (training loss, parameters, test PSNR) and a sane test PSNR (finite, above
 the case's floor, and within 0.5 dB of the original for the scaled and translated scenes). The
@@ -31,8 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nerfmeta.stress import CASES, FULL, MAX_PSNR_GAP, QUICK, format_table, run_table  # noqa: E402
-from nerfmeta.report.benchmarks import write_section as write_benchmark_section  # noqa: E402
+from benchlib.sections import write_section as write_benchmark_section  # noqa: E402
+from benchlib.stress import CASES, FULL, MAX_PSNR_GAP, QUICK, format_table, run_table  # noqa: E402
 
 SECTION = "## Stress cases"
 MACHINE = "2-core CPU, no GPU"
@@ -47,7 +47,7 @@ def section_text(results, args: argparse.Namespace, wall_s: float, load: str) ->
         SECTION,
         "",
         "Extreme inputs from issue #8, each a real fit (`run_fit`; `meta_train` for the meta-learning rows) on a scene",
-        "written for the case (variants of the tiny analytic spheres scene, `nerfmeta/stress.py`). A row is `ok` when no",
+        "written for the case (variants of the tiny analytic spheres scene, `scripts/benchlib/stress.py`). A row is `ok` when no",
         "NaN was seen (training loss and parameters every iteration, saved parameters, test PSNR) and the final test PSNR",
         f"is finite and above the case's sane floor; the scaled and translated scenes must also fit to within {MAX_PSNR_GAP:g} dB",
         "of the original (\"vs reference\"; the `no normalisation` rows show the same scenes loaded with `normalize=False`,",

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from benchlib.stress import FAR_OFF, transform_blender_scene
 from nerfmeta.cli import main
 from nerfmeta.data import LoadOptions, Normalization, load_scene
 from nerfmeta.data.normalize import CANONICAL_FAR, normalization_for
@@ -15,7 +16,6 @@ from nerfmeta.fields.registry import build_model, config_from_dict, default_conf
 from nerfmeta.fit.loop import FitConfig, fit
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.inspect import format_summary, inspect_scene, summarize_scene
-from nerfmeta.stress import FAR_OFF, transform_blender_scene
 
 LEGO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nerf_synthetic" / "lego"
 UNIT_BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

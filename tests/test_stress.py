@@ -1,6 +1,6 @@
 """The stress table in its reduced (CI) form: every extreme case fits without NaN to a sane PSNR.
 
-One module-scoped run of :func:`nerfmeta.stress.run_table` with :data:`~nerfmeta.stress.QUICK`
+One module-scoped run of :func:`benchlib.stress.run_table` with :data:`~benchlib.stress.QUICK`
 (the same library functions and cases as ``scripts/stress.py``, tiny sizes); each case is then
 checked by its own test so a failure names the case.
 """
@@ -16,9 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfmeta.data import load_scene
-from nerfmeta.fit.loop import StepRecord
-from nerfmeta.stress import (
+from benchlib.stress import (
     CASES,
     MAX_PSNR_GAP,
     QUICK,
@@ -32,6 +30,8 @@ from nerfmeta.stress import (
     write_inside_box_scene,
     write_uniform_scene,
 )
+from nerfmeta.data import load_scene
+from nerfmeta.fit.loop import StepRecord
 
 QUICK_CASES = [c for c in CASES if c.quick]
 TABLE_CPU_BUDGET_S = 45.0

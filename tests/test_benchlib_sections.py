@@ -1,8 +1,8 @@
-"""nerfmeta.report.benchmarks: a script's BENCHMARKS.md section is replaced in place or appended."""
+"""benchlib.sections: a script's BENCHMARKS.md section is replaced in place or appended."""
 
 from pathlib import Path
 
-from nerfmeta.report.benchmarks import write_section
+from benchlib.sections import write_section
 
 
 def test_section_is_replaced_in_place_and_the_others_are_kept(tmp_path: Path):
