@@ -1,4 +1,4 @@
-"""Image metrics: exact small cases, PSNR/MSE round trip, SSIM against skimage, LPIPS loading."""
+"""Image metrics: exact small cases, PSNR/MSE round trip, SSIM against skimage."""
 
 import math
 
@@ -8,14 +8,6 @@ import torch
 from skimage.metrics import structural_similarity
 
 from nerfmeta.metrics import (
-    LPIPS_NETWORKS,
-    ImageMetrics,
-    LpipsWeightsError,
-    MetricUnavailable,
-    evaluate_images,
-    load_lpips,
-    lpips,
-    lpips_available,
     mse,
     mse_to_psnr,
     psnr,
@@ -188,117 +180,3 @@ def test_ssim_rejects_bad_inputs():
     with pytest.raises(TypeError, match="floating-point"):
         ssim(torch.zeros(20, 20, 3, dtype=torch.uint8), torch.zeros(20, 20, 3, dtype=torch.uint8))
     assert ssim(torch.rand(20, 20, 1), torch.rand(20, 20, 1), window=3, sigma=0.5).shape == ()
-
-
-# ------------------------------------------------------------------------------------ LPIPS
-
-
-def test_lpips_is_unavailable_without_weights(tmp_path):
-    ok, reason = lpips_available()
-    assert not ok and "alex.pth" in reason and "alexnet-owt-7be5be79.pth" in reason
-    ok, reason = lpips_available(tmp_path / "nowhere")
-    assert not ok and "does not exist" in reason and str(tmp_path / "nowhere") in reason
-    (tmp_path / "alex.pth").write_bytes(b"")
-    ok, reason = lpips_available(tmp_path)
-    assert not ok and "lacks alexnet-owt-7be5be79.pth" in reason and "lacks alex.pth" not in reason
-    x = torch.rand(1, 32, 32, 3)
-    with pytest.raises(MetricUnavailable, match="alexnet-owt-7be5be79.pth"):
-        lpips(x, x, tmp_path)
-    result = evaluate_images(x, x, lpips_weights=tmp_path)
-    assert result.lpips is None and result.lpips_note == reason
-    assert result.psnr == math.inf and result.ssim == 1.0
-    result = evaluate_images(x, x)
-    assert result.lpips is None and "no weights folder" in result.lpips_note
-
-
-def _tv_features(builder: str):
-    from nerfmeta.compat import import_torchvision
-
-    with torch.device("meta"):
-        return getattr(import_torchvision().models, builder)(weights=None).features
-
-
-@pytest.fixture(scope="module")
-def random_alex_weights(tmp_path_factory):
-    """A weights folder in the documented layout, holding random weights."""
-    spec = LPIPS_NETWORKS["alex"]
-    folder = tmp_path_factory.mktemp("lpips_weights")
-    g = torch.Generator().manual_seed(0)
-    backbone = {}
-    for key, meta in _tv_features(spec.builder).state_dict().items():
-        fan_in = meta[0].numel() if meta.ndim > 1 else 1
-        backbone[f"features.{key}"] = torch.randn(meta.shape, generator=g) * math.sqrt(2.0 / fan_in)
-    backbone["classifier.6.bias"] = torch.zeros(1000)  # the real file has a classifier: ignored
-    torch.save(backbone, folder / spec.backbone_file)
-    linear = {
-        f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1, generator=g)  # non-negative, as trained
-        for k, c in enumerate(spec.channels)
-    }
-    torch.save(linear, folder / spec.linear_file)
-    return folder, backbone, linear
-
-
-def _reference_lpips(x, y, backbone, linear):
-    """LPIPS v0.1 written out layer by layer: taps after the ReLUs at 1, 4, 7, 9 and 11."""
-    features = _tv_features("alexnet")
-    state = {k[len("features.") :]: v for k, v in backbone.items() if k.startswith("features.")}
-    features.load_state_dict(state, assign=True)
-    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
-    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
-
-    def taps(img):
-        h, out = (img.permute(0, 3, 1, 2) * 2 - 1 - shift) / scale, []
-        for i, layer in enumerate(features[:12]):  # the final max-pool is not used
-            h = layer(h)
-            if i in (1, 4, 7, 9, 11):
-                out.append(h / (h.pow(2).sum(1, keepdim=True).sqrt() + 1e-10))
-        return out
-
-    total = 0
-    for k, (fx, fy) in enumerate(zip(taps(x), taps(y))):
-        w = linear[f"lin{k}.model.1.weight"]
-        total = total + ((fx - fy) ** 2 * w).sum(1).mean((1, 2))
-    return total
-
-
-def test_lpips_from_random_weights_in_the_expected_layout(random_alex_weights):
-    folder, backbone, linear = random_alex_weights
-    ok, note = lpips_available(folder)
-    assert ok and "alex" in note
-    g = torch.Generator().manual_seed(1)
-    x = torch.rand(2, 48, 40, 3, generator=g)
-    y = (x + 0.2 * torch.randn(2, 48, 40, 3, generator=g)).clamp(0, 1)
-
-    assert lpips(x, x, folder).item() == 0.0
-    net = load_lpips(folder)
-    d = lpips(x, y, net, per_image=True)
-    assert d.shape == (2,) and (d > 0).all()
-    with torch.no_grad():
-        reference = _reference_lpips(x, y, backbone, linear)
-    torch.testing.assert_close(d, reference, rtol=1e-5, atol=1e-7)
-    assert lpips(x[0], y[0], net).item() == pytest.approx(d[0].item(), rel=1e-6)
-    scaled = lpips(x * 255, y * 255, net, data_range=255.0)
-    assert scaled.item() == pytest.approx(d.mean().item(), rel=1e-5)
-    assert lpips(x.double(), y.double(), net).dtype == torch.float64
-
-    result = evaluate_images(x, y, lpips_weights=folder)
-    assert isinstance(result, ImageMetrics)
-    assert result.lpips == pytest.approx(d.mean().item(), rel=1e-5) and "alex" in result.lpips_note
-    assert result.psnr == pytest.approx(psnr(x, y, per_image=True).mean().item(), rel=1e-6)
-    assert result.ssim == pytest.approx(ssim(x, y).item(), abs=1e-6)
-
-
-def test_lpips_rejects_weights_that_do_not_fit(random_alex_weights, tmp_path):
-    folder, backbone, linear = random_alex_weights
-    spec = LPIPS_NETWORKS["alex"]
-    (tmp_path / spec.backbone_file).symlink_to(folder / spec.backbone_file)
-    torch.save({"lin0.model.1.weight": linear["lin0.model.1.weight"]}, tmp_path / spec.linear_file)
-    with pytest.raises(LpipsWeightsError, match="lin4.model.1.weight"):
-        load_lpips(tmp_path)
-    bad = dict(linear, **{"lin2.model.1.weight": torch.rand(1, 7, 1, 1)})
-    torch.save(bad, tmp_path / spec.linear_file)
-    with pytest.raises(LpipsWeightsError, match=r"\(1, 384, 1, 1\)"):
-        load_lpips(tmp_path)
-    (tmp_path / spec.linear_file).write_bytes(b"not a checkpoint")
-    with pytest.raises(LpipsWeightsError, match="cannot read"):
-        evaluate_images(torch.rand(1, 32, 32, 3), torch.rand(1, 32, 32, 3), tmp_path)
