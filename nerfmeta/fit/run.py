@@ -42,7 +42,7 @@ from nerfmeta.fields.registry import build_model, config_from_dict, default_conf
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, StepRecord, fit
 from nerfmeta.init import WEIGHTS, load_init, parse_init
-from nerfmeta.io import atomic_path, sha256_file, to_jsonable, write_json
+from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
 from nerfmeta.report.snapshots import SNAPSHOT_DIR, SnapshotWriter, default_views
 
@@ -213,20 +213,6 @@ class MetricsWriter:
 
     def close(self) -> None:
         self.file.close()
-
-
-def read_metrics(path: str | Path) -> list[dict[str, Any]]:
-    """The records of a ``metrics.jsonl`` (a torn last line from a kill is ignored)."""
-    out = []
-    p = Path(path)
-    if not p.exists():
-        return out
-    for line in p.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
-    return out
 
 
 def prepare_run_dir(out: Path, *, resume: bool, overwrite: bool) -> None:

@@ -23,8 +23,7 @@ from typing import Any, Mapping, Sequence
 import imageio.v3 as iio
 
 from nerfmeta.errors import ConfigError
-from nerfmeta.fit.run import read_metrics
-from nerfmeta.io import write_bytes_atomic, write_json
+from nerfmeta.io import read_metrics, write_bytes_atomic, write_json
 from nerfmeta.report.curves import Evaluations, Reach, ahead_of, evaluations, first_reach, psnr_at_iter, speedup
 from nerfmeta.report.plots import plot_image_grid, plot_psnr_curves
 from nerfmeta.report.snapshots import SNAPSHOT_DIR, read_snapshots, target_name
