@@ -16,7 +16,8 @@ another hash, naming the file. ``fit`` holds the fit settings the zoo's models w
 (backbone, rays per iteration, ...), which a routed fit and its scratch baseline both use.
 
 Which zoo: ``--zoo DIR``, else the ``NERFMETA_ZOO`` environment variable (``none`` for no zoo),
-else ``model_zoo/`` beside the package when it has a manifest.
+else the shipped zoo when it has a manifest: installed with the package as ``nerfmeta/model_zoo/``
+(``pip install .``), or ``model_zoo/`` of the checkout (an editable install, or no install).
 """
 
 from __future__ import annotations
@@ -33,8 +34,9 @@ ZOO_FORMAT = "nerfmeta-zoo-1"
 MANIFEST = "manifest.json"
 KINDS = ("classifier", "category", "meta")
 ENV = "NERFMETA_ZOO"
-PACKAGED_ZOO = Path(__file__).resolve().parents[1] / "model_zoo"
-"""The zoo shipped in the checkout (used when it has a manifest)."""
+PACKAGED_ZOOS = (Path(__file__).resolve().parent / "model_zoo", Path(__file__).resolve().parents[1] / "model_zoo")
+"""Where the shipped zoo is, in order: inside the installed package (setup.cfg installs the checkout's
+``model_zoo/`` as package data ``nerfmeta/model_zoo/``), then beside the package in a checkout."""
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,7 @@ def resolve_zoo_path(zoo: str | os.PathLike | None) -> Path | None:
     env = os.environ.get(ENV)
     if env is not None and env != "":
         return None if env.lower() == "none" else Path(env)
-    return PACKAGED_ZOO if (PACKAGED_ZOO / MANIFEST).is_file() else None
+    return next((path for path in PACKAGED_ZOOS if (path / MANIFEST).is_file()), None)
 
 
 def load_zoo(root: str | os.PathLike, *, verify: bool = True) -> Zoo:
