@@ -30,7 +30,8 @@ WIRING = ("nerfmeta.route", "nerfmeta.demo", *CLI, "classifier", "pretrain")
 """Modules that wire the library into the classify-and-fit pipeline and the commands."""
 ABOVE_LOOP = ("nerfmeta.fit.run", "nerfmeta.init", "nerfmeta.zoo", "nerfmeta.report", "nerfmeta.collection",
               "nerfmeta.inspect", *WIRING)
-"""What sits above the fit loop: the run folder, saved initialisations, the zoo, reports, the wiring."""
+"""What sits above the fit loop: the run folder, saved initialisations, the zoo, reports, generated
+collections, scene inspection and the wiring."""
 FIT_BELOW_RUN = ("nerfmeta.fit.loop", "nerfmeta.fit.evaluate", "nerfmeta.fit.sampler", "nerfmeta.fit.guard",
                  "nerfmeta.fit.checkpoint")
 
