@@ -456,7 +456,7 @@ def section(results: dict, args: argparse.Namespace) -> str:
             "[--downscale 8] [--no-eval-ssim --renders 0]",
             "```",
             "",
-            "LPIPS is never computed (no local weights). The final evaluation renders every test view either way "
+            "LPIPS is never computed (nerfmeta has no LPIPS yet). The final evaluation renders every test view either way "
             "(test PSNR needs them); the switches drop SSIM and the PNG strips.",
             "",
             "| scene | variant | evaluation time (s) | wall time (s) | test SSIM | load before runs |",
