@@ -3,7 +3,8 @@
 Each command module exposes ``add_parser(subparsers)``, which registers its sub-parser and sets
 ``func`` to a ``run(args) -> int`` that parses arguments into a config and calls one library
 function. User errors (:class:`~nerfmeta.errors.NerfmetaError`) become one line on stderr and
-exit code 2.
+exit code 2, and so do argparse's own errors (an unknown option, a value of the wrong type): one
+line naming the option plus a pointer to ``--help``, not the whole usage.
 """
 
 from __future__ import annotations
@@ -30,8 +31,26 @@ COMMAND_MODULES = (
 )
 
 
+class UsageError(Exception):
+    """An argparse error (unknown option, missing or mistyped value), raised instead of printing the usage."""
+
+    def __init__(self, prog: str, message: str):
+        super().__init__(message)
+        self.prog = prog
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are one line: ``PROG: error: MESSAGE (see 'PROG --help')``.
+
+    Sub-parsers made by ``add_subparsers`` are of the same class, so every command behaves alike.
+    """
+
+    def error(self, message: str):  # type: ignore[override]
+        raise UsageError(self.prog, message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="nerfmeta",
         description="Category-aware NeRF transfer and meta-learning toolkit.",
     )
@@ -46,7 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)  # argparse itself exits 2 with a usage line on bad flags
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as err:
+        command = " ".join(err.prog.split()[:2])  # "nerfmeta pretrain", as the command's own errors start
+        print(f"{command}: error: {' '.join(str(err).split())} (see '{err.prog} --help')", file=sys.stderr)
+        return 2
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
