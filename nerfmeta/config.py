@@ -353,6 +353,26 @@ def add_config_options(
     return added
 
 
+def describe_fields(config: Any, heading: str, *, width: int = 100) -> str:
+    """A help section listing every field of dataclass instance ``config`` as ``name (type, VALUE): docstring``.
+
+    ``VALUE`` is the instance's value as ``--set KEY=VALUE`` takes it; lines are wrapped to
+    ``width``. Used as the ``epilog`` that documents the backbone configs' fields.
+    """
+    docs, hints = field_docs(type(config)), field_types(type(config))
+    lines = [heading]
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        shown = json.dumps(list(value) if isinstance(value, tuple) else value)
+        head = f"{f.name} ({_type_name(hints[f.name])}, default {shown}): "
+        lines.append(textwrap.fill(head + docs.get(f.name, ""), width=width, initial_indent="  ", subsequent_indent="      "))
+    return "\n".join(lines)
+
+
+def _type_name(hint: Any) -> str:
+    return (str(hint) if typing.get_origin(hint) else getattr(hint, "__name__", str(hint))).replace("typing.", "")
+
+
 def given_values(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The fields of ``cls`` given on the command line (present in ``args`` and not None), by field name."""
     return {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if getattr(args, f.name, None) is not None}

@@ -50,7 +50,10 @@ def test_argparse_errors_are_one_line_with_a_pointer_to_help(capsys):
 def test_every_command_help_lists_its_config_fields(capsys):
     for argv, flags in ((["fit"], ("--iters", "--time-budget", "--batch-rays", "--eval-views", "--chunk-rays", "--no-normalize")),
                         (["meta-train"], ("--inner-steps", "--no-jitter", "--categories", "--eval-tasks")),
-                        (["pretrain", "category"], ("--category", "--max-scenes", "--batch-rays"))):
+                        (["pretrain", "category"], ("--category", "--max-scenes", "--batch-rays")),
+                        (["make-collection"], ("--scenes-per-category", "--fov", "--full-sphere", "--supersample", "--max-steps")),
+                        (["classifier", "train"], ("--arch", "--time-budget", "--keep-fraction", "--weight-decay")),
+                        (["demo"], ("--known", "--unseen", "--resolution", "--eval-every"))):
         with pytest.raises(SystemExit):
             main([*argv, "--help"])
         text = capsys.readouterr().out

@@ -186,3 +186,23 @@ def test_memory_check_refuses_with_the_estimate_and_what_is_available():
     check_fit_memory(small, None, what="x")  # unknown: allowed
     with pytest.raises(ConfigError):
         check_fit_memory(small, 99, what="x")
+
+
+def test_backbone_configs_refuse_nonfinite_rates_from_json_too():
+    from nerfmeta.fields.registry import config_from_dict
+
+    with pytest.raises(ConfigError, match="lr_features=inf"):
+        config_from_dict("grid", {"lr_features": float("inf")})
+    with pytest.raises(ConfigError, match="lr=nan"):
+        config_from_dict("nerf", {"lr": float("nan")})
+
+
+def test_fit_help_documents_every_backbone_field():
+    from nerfmeta.commands.fit import backbone_fields_help
+
+    text = backbone_fields_help()
+    for cls in (VoxelGridConfig, NerfMLPConfig):
+        for f in dataclasses.fields(cls):
+            assert f"  {f.name} (" in text, f.name
+    assert "num_voxels (int, default 0): Voxels in the fine grids" in text
+    assert "skips (tuple[int, ...], default [2])" in text  # the nerf default of a fit is the small preset

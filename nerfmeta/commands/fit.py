@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,8 @@ RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize"
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
 """Spellings of :class:`FitConfig` fields that differ from the field name (kept from earlier releases)."""
+HELP_WIDTH = 100
+"""Width the hand-wrapped help text (description, backbone fields) is filled to."""
 ZOO_FIT_FIELDS = ("iters", "batch_rays", "eval_every", "eval_views")
 """FitConfig fields a model zoo's manifest may set for ``--init auto`` (a value given on the command line wins)."""
 
@@ -41,8 +44,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "fit",
         help="fit a radiance field to a scene; writes metrics, plots, renders and checkpoints",
-        description="Fit a radiance field to SCENE's training views, evaluate on its test views, and write "
-        "config.json, metrics.jsonl, summary.json, psnr_vs_iter.png, psnr_vs_time.png and renders/ into RUN.",
+        description=textwrap.fill("Fit a radiance field to SCENE's training views, evaluate on its test views, and write "
+                                  "config.json, metrics.jsonl, summary.json, psnr_vs_iter.png, psnr_vs_time.png and renders/ "
+                                  "into RUN.", width=HELP_WIDTH),
+        epilog=backbone_fields_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file)")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
@@ -74,10 +80,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "RUN/compare/NAME, and report PSNR against iterations and time for all (supported: scratch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a backbone config field, e.g. --set num_voxels=512000 (repeatable; parsed by the field's "
-                   "type and checked like the options)")
+                   "type and checked like the options; the fields are listed below)")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN from its checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing RUN folder")
     p.set_defaults(func=run)
+
+
+def backbone_fields_help() -> str:
+    """The ``--set`` fields of every backbone with their types, defaults and docstrings (an epilog)."""
+    return "\n\n".join(options.describe_fields(default, f"--set KEY=VALUE, --backbone {name} (the defaults of a scratch fit):",
+                                                width=HELP_WIDTH)
+                       for name, (_, _, default) in BACKBONES.items())
 
 
 def parse_overrides(items: list[str], backbone: str) -> dict[str, Any]:

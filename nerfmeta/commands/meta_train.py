@@ -72,7 +72,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--inner-lr-group", dest="inner_lr_groups", action="append", default=None, metavar="GROUP=X",
                    help=f"{docs['inner_lr_groups']} (repeatable)")
     p.add_argument("--set", dest="model", action="append", default=None, metavar="KEY=VALUE",
-                   help="override a backbone config field, e.g. --set width=128 (repeatable; typed and checked)")
+                   help="override a backbone config field, e.g. --set width=128 (repeatable; typed and checked; the fields are "
+                   "listed in 'nerfmeta fit --help')")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN from its checkpoint (options not given again keep their saved values)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing RUN folder")
     p.set_defaults(func=run)

@@ -50,7 +50,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     options.add_config_options(c, FitConfig, only=FIT_OPTIONS, notes={"batch_rays": "drawn from all scenes"},
                                defaults={"eval_every": "0: only at the end, on all test views"})
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a backbone config field (repeatable; typed and checked like the options)")
+                   help="override a backbone config field (repeatable; typed and checked like the options; the fields are listed in "
+                   "'nerfmeta fit --help')")
     c.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
     c.set_defaults(func=run_category)
 
