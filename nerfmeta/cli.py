@@ -15,6 +15,7 @@ import logging
 import sys
 
 from nerfmeta import __version__
+from nerfmeta.config import did_you_mean
 from nerfmeta.errors import NerfmetaError
 
 # Order is the order shown in ``nerfmeta --help``.
@@ -63,13 +64,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_parser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
+    """The (sub-)parser of the command that ``argv`` names (e.g. ``pretrain category``), else ``parser``."""
+    current = parser
+    for token in argv:
+        sub = next((a for a in current._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None:
+            break
+        if token in sub.choices:
+            current = sub.choices[token]
+    return current
+
+
+def _suggest(parser: argparse.ArgumentParser, message: str) -> str:
+    """``"; did you mean '--iters'?"`` for the first unrecognised option of ``message`` close to one of ``parser``'s."""
+    known = [s[2:] for action in parser._actions for s in action.option_strings if s.startswith("--")]
+    for token in message.removeprefix("unrecognized arguments:").split():
+        if token.startswith("--"):
+            hint = did_you_mean(token.partition("=")[0][2:], known)
+            if hint:
+                return hint.replace("'", "'--", 1)
+    return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = parser.parse_args(argv)
     except UsageError as err:
-        command = " ".join(err.prog.split()[:2])  # "nerfmeta pretrain", as the command's own errors start
-        print(f"{command}: error: {' '.join(str(err).split())} (see '{err.prog} --help')", file=sys.stderr)
+        prog, message = err.prog, " ".join(str(err).split())
+        if message.startswith("unrecognized arguments:"):  # reported by the top parser: name the command's options
+            command_parser = _command_parser(parser, argv)
+            prog, message = command_parser.prog, message + _suggest(command_parser, message)
+        command = " ".join(prog.split()[:2])  # "nerfmeta pretrain", as the command's own errors start
+        print(f"{command}: error: {message} (see '{prog} --help')", file=sys.stderr)
         return 2
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,

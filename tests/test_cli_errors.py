@@ -27,7 +27,8 @@ from nerfmeta.cli import main
     (["--downscale", "0.5"], "--downscale"),
     (["--background", "purple"], "--background"),
     (["--eval-ssim", "yes"], "unrecognized arguments"),
-    (["--no-such-option"], "unrecognized arguments: --no-such-option"),
+    (["--no-such-option"], "unrecognized arguments: --no-such-option (see 'nerfmeta fit --help')"),
+    (["--itres", "3"], "unrecognized arguments: --itres 3; did you mean '--iters'?"),
 ])
 def test_bad_fit_options_one_line_exit_2_nothing_written(tiny_scene, tmp_path, capsys, args, needle):
     out = tmp_path / "run"
