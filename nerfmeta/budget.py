@@ -161,14 +161,20 @@ def check_fit_memory(estimate: MemoryEstimate, available: int | None, *, what: s
                           f"machine; lower num_voxels (grid), width/n_samples (nerf) or --batch-rays")
 
 
-def check_fit_fits(backbone: str, config: Any, scene: Any, *, batch_rays: int, device: torch.device | str) -> MemoryEstimate:
-    """Estimate a fit of ``scene`` (a :class:`~nerfmeta.data.scene.Scene`) and refuse it when it cannot fit in memory.
+def refuse_if_too_big(backbone: str, config: Any, bounds: torch.Tensor, *, batch_rays: int, train_pixels: int,
+                      device: torch.device | str) -> MemoryEstimate:
+    """:func:`estimate_fit_memory`, refused (one-line :class:`ConfigError`) when over :func:`available_memory` of ``device``.
 
-    Call it after the scene is loaded and before the model is built; returns the estimate.
+    Call it before the model is built; returns the estimate.
     """
-    pixels = len(scene.splits.get("train", ())) * scene.height * scene.width
-    estimate = estimate_fit_memory(backbone, config, scene.bounds, batch_rays=batch_rays, train_pixels=pixels)
+    estimate = estimate_fit_memory(backbone, config, bounds, batch_rays=batch_rays, train_pixels=train_pixels)
     sizes = {"grid": ("num_voxels", "coarse_num_voxels"), "nerf": ("width", "depth", "n_samples")}.get(backbone, ())
-    what = f"{backbone} config " + ", ".join(f"{name}={getattr(config, name)}" for name in sizes) + f" with --batch-rays {batch_rays}"
+    what = f"{backbone} config " + ", ".join(f"{name}={getattr(config, name)}" for name in sizes) + f" with {batch_rays} rays a step"
     check_fit_memory(estimate, available_memory(device), what=what)
     return estimate
+
+
+def check_fit_fits(backbone: str, config: Any, scene: Any, *, batch_rays: int, device: torch.device | str) -> MemoryEstimate:
+    """:func:`refuse_if_too_big` for a fit of ``scene`` (a :class:`~nerfmeta.data.scene.Scene`, its training pixels one ray each)."""
+    pixels = len(scene.splits.get("train", ())) * scene.height * scene.width
+    return refuse_if_too_big(backbone, config, scene.bounds, batch_rays=batch_rays, train_pixels=pixels, device=device)

@@ -61,3 +61,34 @@ def test_every_command_help_lists_its_config_fields(capsys):
         assert all(flag in text for flag in flags), (argv, text)
 
 
+
+
+@pytest.fixture(scope="module")
+def collection(tmp_path_factory: pytest.TempPathFactory):
+    """2 categories x 3 scenes, 16 px, 3 views: enough for pretraining and meta-training to start."""
+    from nerfmeta.collection.generate import CollectionConfig, generate_collection
+    from nerfmeta.collection.render import RenderConfig
+
+    out = tmp_path_factory.mktemp("cli_coll") / "coll"
+    generate_collection(CollectionConfig(categories=("mug", "vase"), scenes_per_category=3, views=3, test_views=1, resolution=16,
+                                         val_fraction=0.0, test_fraction=0.34, render=RenderConfig(supersample=1, max_steps=32)), out)
+    return out
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["pretrain", "category", "{coll}", "--category", "mug", "--iters", "500", "--set", "num_voxels=1e12"], "is available"),
+    (["pretrain", "category", "{coll}", "--category", "mug", "--set", "lr_density=inf"], "must be a finite number"),
+    (["pretrain", "category", "{coll}", "--category", "mug", "--eval-every", "-1"], "--eval-every"),
+    (["meta-train", "{coll}", "--backbone", "grid", "--set", "num_voxels=1e12"], "is available"),
+    (["meta-train", "{coll}", "--backbone", "nerf", "--set", "lr=abc"], "lr=abc: expected a number"),
+    (["meta-train", "{coll}", "--inner-lr", "nan"], "--inner-lr"),
+    (["meta-train", "{coll}", "--algo", "sgd"], "--algo"),
+    (["meta-train", "{coll}", "--inner-lr-group", "density=inf"], "--inner-lr-group"),
+])
+def test_bad_pretrain_and_meta_options_one_line_exit_2_nothing_written(collection, tmp_path, capsys, argv, needle):
+    out = tmp_path / "out"
+    code = main([a.replace("{coll}", str(collection)) for a in argv] + ["--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and needle in err, err
+    assert not out.exists()
