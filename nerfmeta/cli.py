@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 
 from nerfmeta import __version__
@@ -64,6 +65,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+ARGPARSE_PHRASES = ("invalid ", "expected ", "ignored ", "not allowed ")
+"""How argparse's own complaints about an option's value begin (the typed options' begin with the value)."""
+
+
+def _name_option_first(message: str) -> str:
+    """``argument --iters: 0: must be >= 1`` -> ``--iters 0: must be >= 1``; argparse's own phrases keep a colon."""
+    match = re.match(r"argument (--[\w-]+)(?:/--[\w-]+)?: (.*)", message)
+    if match is None:
+        return message
+    flag, rest = match.groups()
+    return f"{flag}{':' if rest.startswith(ARGPARSE_PHRASES) else ''} {rest}"
+
+
 def _command_parser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
     """The (sub-)parser of the command that ``argv`` names (e.g. ``pretrain category``), else ``parser``."""
     current = parser
@@ -94,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except UsageError as err:
         prog, message = err.prog, " ".join(str(err).split())
+        message = _name_option_first(message)
         if message.startswith("unrecognized arguments:"):  # reported by the top parser: name the command's options
             command_parser = _command_parser(parser, argv)
             prog, message = command_parser.prog, message + _suggest(command_parser, message)
