@@ -3,7 +3,7 @@
 The command line is generated from the configs' fields: a field's type annotation says how its
 text is parsed (:func:`parse_value`), its one-line attribute docstring is its ``--help``
 (:func:`field_docs`), and an optional declared range (:func:`bounded`) is checked at parse time
-and whenever the config is built (:func:`check_bounds`). ``--set KEY=VALUE`` overrides are parsed
+and whenever the config is built (:func:`check_fields`). ``--set KEY=VALUE`` overrides are parsed
 against the same annotations (:func:`parse_overrides`). So a wrong value is refused in one line
 naming the option, before a command writes anything.
 
@@ -95,17 +95,43 @@ def field_bounds(field: dataclasses.Field) -> Bounds:
     return field.metadata.get(BOUNDS, FINITE)
 
 
-def check_bounds(config: Any, what: str) -> None:
-    """Raise a one-line :class:`ConfigError` for any numeric field of ``config`` outside its declared range.
+def check_fields(config: Any, what: str) -> None:
+    """Raise a one-line :class:`ConfigError` for any field of ``config`` not of its declared type or outside its range.
 
-    ``what`` names the config in the message (e.g. ``fit config``); ``None`` values (unset) pass.
+    For configs built in code or from JSON (``config.json``, a zoo manifest), where no parser ran:
+    ``FitConfig(batch_rays="abc")`` is refused like ``--batch-rays abc``. ``what`` names the
+    config in the message (e.g. ``fit config``); ``None`` passes where the type allows it.
     """
+    hints = field_types(type(config))
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
+        if not _is_instance(value, hints[f.name]):
+            raise ConfigError(f"{what} {f.name}={value!r}: expected {_type_name(hints[f.name])}")
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             problem = field_bounds(f).problem(float(value))
             if problem:
                 raise ConfigError(f"{what} {f.name}={value!r}: {problem}")
+
+
+def _is_instance(value: Any, hint: Any) -> bool:
+    """Whether ``value`` is of type ``hint`` as a parsed option would be (an int is a float; a bool is no number)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_is_instance(value, a) for a in args)
+    if origin is Literal:
+        return value in args
+    if origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            return False
+        item_types = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
+        return len(item_types) == len(value) and all(_is_instance(v, t) for v, t in zip(value, item_types))
+    if hint is type(None):
+        return value is None
+    if hint in (int, float):
+        return isinstance(value, (int, float) if hint is float else int) and not isinstance(value, bool)
+    if hint in (bool, str):
+        return isinstance(value, hint)
+    return True  # dicts, Any, nested configs: checked by their own code
 
 
 def field_docs(cls: type) -> dict[str, str]:

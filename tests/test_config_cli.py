@@ -131,12 +131,26 @@ def test_generated_option_refuses_out_of_range_value_in_argparse():
         _demo_parser().parse_args(["--name", "x", "--steps", "0"])
 
 
-def test_check_bounds_catches_configs_built_in_code():
+def test_check_fields_catches_configs_built_in_code_or_from_json():
     with pytest.raises(ConfigError, match=r"fit config iters=0: must be >= 1"):
         FitConfig(iters=0)
     with pytest.raises(ConfigError, match="lr_decay"):
         FitConfig(lr_decay=float("nan"))
     assert FitConfig(time_budget_s=None, eval_every=0).eval_every == 0
+    with pytest.raises(ConfigError, match=r"fit config batch_rays='abc': expected int"):
+        FitConfig(batch_rays="abc")  # e.g. an untyped zoo manifest
+    with pytest.raises(ConfigError, match=r"iters=True: expected int"):
+        FitConfig(iters=True)
+    assert FitConfig(time_budget_s=60).time_budget_s == 60  # an int is a float
+
+
+@pytest.mark.parametrize("value,hint,ok", [
+    (3, int, True), (3.0, int, False), (True, int, False), (3, float, True), (None, float | None, True),
+    ("auto", bool | str, True), ((1, 2), tuple[int, ...], True), ([1, 2], tuple[int, ...], True),
+    ((1, "a"), tuple[int, ...], False), ((1.0, 0.5), tuple[float, float, float], False), ("maml", Literal["maml"], True),
+])
+def test_is_instance_follows_the_parser(value, hint, ok):
+    assert options._is_instance(value, hint) is ok
 
 
 def test_overrides_are_typed_and_unknown_keys_get_a_suggestion():

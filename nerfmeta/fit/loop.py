@@ -26,7 +26,7 @@ from typing import Callable, Protocol, Sequence
 
 import torch
 
-from nerfmeta.config import bounded, check_bounds
+from nerfmeta.config import bounded, check_fields
 from nerfmeta.data.scene import Scene
 from nerfmeta.fields.base import Decision, RadianceModel
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
@@ -75,7 +75,7 @@ class FitConfig:
     def __post_init__(self) -> None:
         # config.json holds the guard as a dict: accept one so a saved config loads back equal.
         object.__setattr__(self, "guard", GuardConfig.coerce(self.guard))
-        check_bounds(self, "fit config")
+        check_fields(self, "fit config")
 
 
 @dataclass
