@@ -36,8 +36,8 @@ from typing import Any, Sequence
 
 import torch
 
-from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
 from nerfmeta.budget import check_fit_fits
+from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
 from nerfmeta.data import load_scene
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError
