@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
+from nerfmeta.config import bounded
 from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback, FitConfig
 from nerfmeta.fit.run import RunConfig
@@ -39,15 +40,15 @@ class DemoConfig:
     """Category of the second object (one the shipped zoo has never seen)."""
     resolution: int = 64
     """Image size of the generated views (what the classifier reads)."""
-    downscale: float = 2.0
+    downscale: float = bounded(2.0, low=1)
     """Fits read the views reduced by this factor (32 x 32 by default, as the zoo's models were trained)."""
-    views: int = 16
+    views: int = bounded(16, low=1)
     """Training views per object."""
-    test_views: int = 8
+    test_views: int = bounded(8, low=1)
     """Test views per object (other directions than the training views)."""
-    iters: int | None = None
+    iters: int | None = bounded(None, low=1)
     """Iterations of each fit (None: the zoo's)."""
-    eval_every: int | None = None
+    eval_every: int | None = bounded(None, low=0)
     """Test PSNR every this many iterations (None: the zoo's)."""
     seed: int = 1000
     """Seed of the objects (the zoo is built from seed 0) and of the fits."""

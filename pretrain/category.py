@@ -36,6 +36,7 @@ from typing import Any, Sequence
 
 import torch
 
+from nerfmeta.budget import check_fit_fits
 from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
 from nerfmeta.data import load_scene
 from nerfmeta.data.scene import Scene
@@ -224,6 +225,7 @@ def pretrain_category(
     data = category_scene(collection, records, downscale=config.downscale, background=config.background)
     device = torch.device(config.device)
     model_config = config.model_config(data.scene)
+    check_fit_fits(config.backbone, model_config, data.scene, batch_rays=config.fit.batch_rays, device=device)
     model = build_model(config.backbone, model_config, data.scene.bounds, seed=config.fit.seed, device=device)
 
     if overwrite and out.exists():

@@ -39,6 +39,7 @@ from typing import Any, Callable, Sequence
 
 import torch
 
+from nerfmeta.budget import refuse_if_too_big
 from nerfmeta.collection.generate import Collection, load_collection
 from nerfmeta.errors import ConfigError, NerfmetaError
 from nerfmeta.fields.base import RadianceModel
@@ -255,6 +256,8 @@ def held_out_scenes(collection: Collection, config: MetaConfig) -> list:
 def build_meta_model(config: MetaConfig, device: torch.device) -> RadianceModel:
     """The initial model: the backbone config of ``config``, in the canonical [-1, 1]^3 box, weights from ``seed``."""
     bounds = torch.tensor(CANONICAL_BOUNDS, dtype=torch.float32)
+    refuse_if_too_big(config.backbone, config.model_config(), bounds, batch_rays=config.support_rays * config.inner_steps
+                      + config.query_rays, train_pixels=0, device=device)  # a task's graph: inner steps and the query
     return build_model(config.backbone, config.model_config(), bounds, seed=config.seed, device=device)
 
 

@@ -5,15 +5,23 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nerfmeta.commands.fit import ProgressBar, _check_positive, parse_overrides
+from nerfmeta import config as options
+from nerfmeta.commands.fit import ProgressBar, parse_overrides
 from nerfmeta.data.registry import parse_background
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig
 
-_FIT = FitConfig()
+PRETRAIN_OPTIONS = ("category", "backbone", "max_scenes", "downscale", "background", "device")
+"""The ``CategoryPretrainConfig`` fields that are options (the collection is positional; ``model`` is ``--set``)."""
+FIT_OPTIONS = ("iters", "batch_rays", "seed", "eval_every")
+"""The :class:`FitConfig` fields that are options of a category pretraining."""
+FIT_DEFAULTS = {"eval_every": 0, "checkpoint_every": 0}
+"""Where a category pretraining's optimisation settings differ from a fit's defaults."""
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    from pretrain.category import CategoryPretrainConfig
+
     p = subparsers.add_parser(
         "pretrain",
         help="pretrain a starting point for fits: 'pretrain category' trains a category model",
@@ -30,18 +38,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "psnr_vs_iter.png). Start a fit from it with 'nerfmeta fit SCENE --init category:DIR [--freeze K]'.",
     )
     c.add_argument("collection", metavar="COLLECTION", help="collection folder from 'nerfmeta make-collection'")
-    c.add_argument("--category", required=True, metavar="C", help="category whose training scenes are used")
     c.add_argument("--out", required=True, metavar="DIR", help="folder to write (must be new or empty)")
-    c.add_argument("--backbone", choices=sorted(BACKBONES), default="grid", help="grid (fine stage only) or nerf; default grid")
-    c.add_argument("--iters", type=int, default=_FIT.iters, metavar="N", help=f"iterations (default {_FIT.iters})")
-    c.add_argument("--batch-rays", type=int, default=_FIT.batch_rays, metavar="N", help=f"rays per iteration, drawn from all scenes (default {_FIT.batch_rays})")
-    c.add_argument("--seed", type=int, default=_FIT.seed, help=f"seed of weights, rays and jitter (default {_FIT.seed})")
-    c.add_argument("--eval-every", type=int, default=0, metavar="N", help="test PSNR on a few test views every N iterations (default 0: only at the end, on all)")
-    c.add_argument("--max-scenes", type=int, default=None, metavar="N", help="use only the first N training scenes (default all)")
-    c.add_argument("--downscale", type=float, default=1.0, metavar="F", help="reduce images by F >= 1 (default 1)")
-    c.add_argument("--background", default="white", metavar="COLOUR", help="white, black or R,G,B (default white); fit with the same one")
-    c.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
-    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a backbone config field (repeatable)")
+    options.add_config_options(
+        c, CategoryPretrainConfig, only=PRETRAIN_OPTIONS, choices={"backbone": sorted(BACKBONES)},
+        parsers={"background": parse_background},
+        metavars={"category": "C", "max_scenes": "N", "downscale": "F", "background": "COLOUR", "device": "DEV"},
+        notes={"backbone": "the grid trains its fine stage only", "background": "white, black or R,G,B",
+               "device": "cpu, cuda or cuda:N"},
+        defaults={"max_scenes": "all", "background": "white"},
+    )
+    options.add_config_options(c, FitConfig, only=FIT_OPTIONS, notes={"batch_rays": "drawn from all scenes"},
+                               defaults={"eval_every": "0: only at the end, on all test views"})
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a backbone config field (repeatable; typed and checked like the options; the fields are listed in "
+                   "'nerfmeta fit --help')")
     c.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
     c.set_defaults(func=run_category)
 
@@ -66,16 +76,11 @@ class _LazyBar:
 def run_category(args: argparse.Namespace) -> int:
     from pretrain.category import CategoryPretrainConfig, pretrain_category
 
-    for name, value, zero_ok in (("--iters", args.iters, False), ("--batch-rays", args.batch_rays, False),
-                                 ("--eval-every", args.eval_every, True)):
-        _check_positive(name, value, zero_ok)
-    fit_config = FitConfig(iters=args.iters, batch_rays=args.batch_rays, seed=args.seed, eval_every=args.eval_every,
-                           checkpoint_every=0)
-    config = CategoryPretrainConfig(
-        collection=str(Path(args.collection)), category=args.category, backbone=args.backbone,
-        model=parse_overrides(args.set, args.backbone), fit=fit_config, max_scenes=args.max_scenes,
-        downscale=args.downscale, background=parse_background(args.background), device=args.device,
-    )
+    fit_config = options.build_config(FitConfig, {**FIT_DEFAULTS, **options.given_values(args, FitConfig)})
+    values = options.given_values(args, CategoryPretrainConfig)
+    backbone = values.get("backbone", "grid")
+    config = options.build_config(CategoryPretrainConfig, {
+        **values, "collection": str(Path(args.collection)), "model": parse_overrides(args.set, backbone), "fit": fit_config})
     bar = _LazyBar(fit_config)
     try:
         manifest = pretrain_category(config, args.out, overwrite=args.overwrite, callbacks=[bar])

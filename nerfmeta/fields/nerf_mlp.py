@@ -69,7 +69,7 @@ class NerfMLPConfig:
             ("density_activation", self.density_activation in DENSITY_ACTIVATIONS,
              f"use one of {', '.join(DENSITY_ACTIVATIONS)}"),
             ("alpha_init", 0.0 < self.alpha_init < 1.0, "use a value in (0, 1), e.g. 1e-2"),
-            ("lr", self.lr > 0.0, "use a positive learning rate"),
+            ("lr", 0.0 < self.lr < math.inf, "use a positive finite learning rate"),
             ("raw_noise_std", self.raw_noise_std >= 0.0, "use 0 (off) or more"),
         )
         for name, ok, hint in checks:

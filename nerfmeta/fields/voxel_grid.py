@@ -172,6 +172,9 @@ class VoxelGridConfig:
             ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
              "use increasing positive fine-stage steps, e.g. [100, 200]"),
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
+            *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
+              for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
+            ("tv_weight", 0.0 <= self.tv_weight < math.inf, "use 0 (off) or a positive finite weight"),
         )
         for name, ok, hint in checks:
             if not ok:

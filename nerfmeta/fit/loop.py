@@ -26,6 +26,7 @@ from typing import Callable, Protocol, Sequence
 
 import torch
 
+from nerfmeta.config import bounded, check_fields
 from nerfmeta.data.scene import Scene
 from nerfmeta.fields.base import Decision, RadianceModel
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
@@ -40,29 +41,29 @@ log = logging.getLogger(__name__)
 class FitConfig:
     """Optimisation settings shared by every backbone and initialisation."""
 
-    iters: int = 3000
+    iters: int = bounded(3000, low=1)
     """Maximum number of iterations."""
-    time_budget_s: float | None = None
+    time_budget_s: float | None = bounded(None, low=0, low_open=True)
     """Stop once this much optimisation time (seconds, evaluation excluded) has passed."""
     target_psnr: float | None = None
     """Stop at the first evaluation whose test PSNR reaches this (dB)."""
-    batch_rays: int = 4096
+    batch_rays: int = bounded(4096, low=1)
     """Rays per iteration."""
     seed: int = 0
     """Seed of the ray sampler and of sample jitter."""
-    lr_decay: float = 0.1
+    lr_decay: float = bounded(0.1, low=0, high=1, low_open=True)
     """Learning rates decay exponentially to this fraction at the end (of iters or of the time budget)."""
-    adam_eps: float = 1e-8
+    adam_eps: float = bounded(1e-8, low=0, low_open=True)
     """Adam's epsilon."""
-    adam_eps_density: float = 1e-15
+    adam_eps_density: float = bounded(1e-15, low=0, low_open=True)
     """Adam's epsilon for parameter groups named ``density`` (the grids' density): their gradients scale with the initial alpha (about 1e-10 per voxel at alpha 1e-6), which an epsilon of 1e-8 damps to a standstill (see build_optimizer)."""
-    eval_every: int = 500
+    eval_every: int = bounded(500, low=0)
     """Evaluate test PSNR every this many iterations (0: only at the end)."""
-    eval_views: int = 4
+    eval_views: int = bounded(4, low=0)
     """Test views rendered at intermediate evaluations (0: all); the final evaluation uses all."""
-    checkpoint_every: int = 500
+    checkpoint_every: int = bounded(500, low=0)
     """Write a checkpoint every this many iterations (0: only at the end)."""
-    chunk_rays: int = 16384
+    chunk_rays: int = bounded(16384, low=1)
     """Rays rendered at once during evaluation."""
     stage_end_eval: bool = True
     """With a target PSNR, evaluate (like ``eval_every``) when the model ends a stage, so a stage that already meets the target ends the fit and the next is never built (False: scheduled evaluations only)."""
@@ -74,6 +75,7 @@ class FitConfig:
     def __post_init__(self) -> None:
         # config.json holds the guard as a dict: accept one so a saved config loads back equal.
         object.__setattr__(self, "guard", GuardConfig.coerce(self.guard))
+        check_fields(self, "fit config")
 
 
 @dataclass

@@ -35,6 +35,8 @@ from typing import Any, Mapping, Sequence
 import imageio.v3 as iio
 import torch
 
+from nerfmeta.budget import check_fit_fits
+from nerfmeta.config import bounded
 from nerfmeta.data import load_scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
@@ -63,7 +65,7 @@ class RunConfig:
     """Backbone config overrides (JSON form); missing keys take the backbone's defaults."""
     fit: FitConfig = FitConfig()
     """Optimisation settings."""
-    downscale: float = 1.0
+    downscale: float = bounded(1.0, low=1)
     """Image downscale factor applied when loading."""
     normalize: bool = True
     """Move a scene of extreme scale or far from the origin into range when loading (identity for
@@ -74,9 +76,9 @@ class RunConfig:
     """Torch device."""
     init: str = "scratch"
     """Where the initial weights come from: ``scratch``, ``category:DIR`` or ``meta:DIR``."""
-    freeze: int = 0
+    freeze: int = bounded(0, low=0)
     """Number of leading layers (of ``model.layers()``, input to output) kept frozen; needs a saved init."""
-    renders: int = RENDERED_VIEWS
+    renders: int = bounded(RENDERED_VIEWS, low=0)
     """Test views whose ground truth | prediction strip is written to ``renders/`` (0: none)."""
     snapshot_iters: tuple[int, ...] = ()
     """Iterations after which to render the first test views into ``snapshots/`` (0: the starting point), plus the final one; empty: none."""
@@ -258,6 +260,7 @@ def run_fit(
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
+    check_fit_fits(config.backbone, config.model_config(scene), scene, batch_rays=config.fit.batch_rays, device=device)
     model, model_config, init = build_initial_model(config, scene, device)
 
     if overwrite and out.exists():
