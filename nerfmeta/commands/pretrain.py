@@ -42,7 +42,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("--background", default="white", metavar="COLOUR", help="white, black or R,G,B (default white); fit with the same one")
     c.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a backbone config field (repeatable)")
-    c.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
+    c.add_argument("--checkpoint-every", type=int, default=_FIT.checkpoint_every, metavar="N",
+                   help=f"checkpoint every N iterations, for --resume (default {_FIT.checkpoint_every}; 0: only at the end)")
+    c.add_argument("--resume", action="store_true", help="continue the category run in DIR from its checkpoint")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing DIR (only a category run of ours)")
     c.set_defaults(func=run_category)
 
 
@@ -67,10 +70,10 @@ def run_category(args: argparse.Namespace) -> int:
     from pretrain.category import CategoryPretrainConfig, pretrain_category
 
     for name, value, zero_ok in (("--iters", args.iters, False), ("--batch-rays", args.batch_rays, False),
-                                 ("--eval-every", args.eval_every, True)):
+                                 ("--eval-every", args.eval_every, True), ("--checkpoint-every", args.checkpoint_every, True)):
         _check_positive(name, value, zero_ok)
     fit_config = FitConfig(iters=args.iters, batch_rays=args.batch_rays, seed=args.seed, eval_every=args.eval_every,
-                           checkpoint_every=0)
+                           checkpoint_every=args.checkpoint_every)
     config = CategoryPretrainConfig(
         collection=str(Path(args.collection)), category=args.category, backbone=args.backbone,
         model=parse_overrides(args.set, args.backbone), fit=fit_config, max_scenes=args.max_scenes,
@@ -78,7 +81,7 @@ def run_category(args: argparse.Namespace) -> int:
     )
     bar = _LazyBar(fit_config)
     try:
-        manifest = pretrain_category(config, args.out, overwrite=args.overwrite, callbacks=[bar])
+        manifest = pretrain_category(config, args.out, overwrite=args.overwrite, resume=args.resume, callbacks=[bar])
     finally:
         bar.close()
     print(f"category model '{manifest['category']}' ({manifest['backbone']}): {len(manifest['scenes'])} scenes, "
