@@ -427,7 +427,15 @@ def open_run(out: str | os.PathLike, kind: str, *, resume: bool = False, overwri
     """
     out = Path(os.path.abspath(out))
     check_target(out, kind, resume=resume, overwrite=overwrite, protect=protect)
-    replacing = overwrite and has_content(out)
+    try:
+        return _open(out, kind, resume=resume, replacing=overwrite and has_content(out), aside=aside)
+    except OSError as err:
+        full = disk_full_error(err, err.filename or out)
+        raise full or RunFolderError(f"{err.filename or out}: cannot write there ({err.strerror}); "
+                                     "choose another --out") from None
+
+
+def _open(out: Path, kind: str, *, resume: bool, replacing: bool, aside: bool) -> RunFolder:
     if aside or replacing:
         out.parent.mkdir(parents=True, exist_ok=True)
         locks = [_lock(out)] if out.is_dir() else []
@@ -440,14 +448,8 @@ def open_run(out: str | os.PathLike, kind: str, *, resume: bool = False, overwri
         locks.append(_lock(work))
         return RunFolder(out, work, kind, locks, aside=True, created=True)
     created = not out.exists()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise RunFolderError(f"{out}: cannot create the folder ({err.strerror})") from None
-    try:
-        lock = _lock(out)
-    except PermissionError as err:
-        raise RunFolderError(f"{out}: cannot write there ({err.strerror})") from None
+    out.mkdir(parents=True, exist_ok=True)
+    lock = _lock(out)
     clean_orphans(out)
     if marker_kind(out) is None:
         _write_marker(out, kind)

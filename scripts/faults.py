@@ -151,15 +151,17 @@ def lost_files(planted: Sequence[Path], scene: Path | None, scene_before: dict[s
     return lost
 
 
-def complete(run: Path, *, steps_key: str, final: str, steps: int) -> bool:
-    """A finished run: its final file, one metrics record per step (1..steps), a readable checkpoint."""
+def complete(run: Path, *, steps_key: str, final: str, steps: int | None) -> bool:
+    """A finished run: its final file, one metrics record per step (1..steps; None: the summary's
+    ``iters``), a readable checkpoint."""
     from nerfmeta.runfolder import CHECKPOINT
 
     if not (run / final).is_file():
         return False
     try:
         records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    except (OSError, ValueError):
+        steps = steps if steps is not None else int(json.loads((run / final).read_text())["iters"])
+    except (OSError, ValueError, KeyError):
         return False
     if [r[steps_key] for r in records] != list(range(1, steps + 1)):
         return False
@@ -243,7 +245,7 @@ def two_writers(scene: Path, work: Path, trials: int) -> Tally:
     for i in range(trials):
         out = work / f"two{i}" / "run"
         planted = [plant(out.parent)]
-        first = start([*("fit", str(scene), "--out", str(out)), *FIT_FAST, "--iters", "40"])
+        first = start([*("fit", str(scene), "--out", str(out)), *FIT_FAST, "--iters", "100000", "--time-budget", "25"])
         deadline = time.time() + 120
         while not (out / "config.json").is_file() and first.poll() is None and time.time() < deadline:
             time.sleep(0.2)
@@ -251,7 +253,7 @@ def two_writers(scene: Path, work: Path, trials: int) -> Tally:
                   for flag in ("--overwrite", "--resume")]
         first.wait()
         ok = first.returncode == 0 and all(v.startswith("refused") and "in use" in v for v in second) \
-            and complete(out, steps_key="iter", final="summary.json", steps=40)
+            and complete(out, steps_key="iter", final="summary.json", steps=None)
         tally.add(ok, lost_files(planted, None, None), "" if ok else f"first exit {first.returncode}; second: {second}")
     return tally
 

@@ -307,3 +307,35 @@ def test_resume_of_a_folder_that_is_not_a_run_is_refused(tiny_scene, tmp_path, c
     assert main(["fit", str(tiny_scene), "--out", str(out), "--resume", *FAST]) == 2
     assert "nothing to resume" in _one_error_line(capsys)
     assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
+
+
+def test_an_out_folder_under_a_file_is_one_line(tiny_scene, tmp_path, capsys):
+    (tmp_path / "file").write_text("mine")
+    assert main(["fit", str(tiny_scene), "--out", str(tmp_path / "file" / "run"), *FAST]) == 2
+    assert "cannot write there" in _one_error_line(capsys)
+    assert (tmp_path / "file").read_text() == "mine"
+
+
+def _limit_file_size(limit: int):
+    def apply() -> None:
+        import resource
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG from write() instead of a kill
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def test_a_full_disk_during_overwrite_is_one_line_and_keeps_the_previous_run(tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    run_fit(_config(tiny_scene), out)
+    before = {k: v for k, v in _tree(out).items() if k != LOCK}
+    limit = (out / "checkpoint.safetensors").stat().st_size // 2  # config and metrics fit, a checkpoint does not
+    env = dict(os.environ, NERFMETA_ZOO="none", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.run([sys.executable, "-m", "nerfmeta", "fit", str(tiny_scene), "--out", str(out), "--overwrite",
+                           "--checkpoint-every", "2", *FAST], capture_output=True, text=True, env=env,
+                          preexec_fn=_limit_file_size(limit), timeout=300)
+    errors = [line for line in proc.stderr.replace("\r", "\n").splitlines() if ": error: " in line]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert len(errors) == 1 and "File too large" in errors[0] and "checkpoint.safetensors" in errors[0]
+    assert {k: v for k, v in _tree(out).items() if k != LOCK} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
