@@ -496,6 +496,60 @@ def _train_into(folder: Path, config: MetaConfig, model: RadianceModel, optimize
     return dist.on_main(finish)
 
 
+@dataclass(frozen=True)
+class MetaSummary:
+    """The final figures of a meta-training run: ``summary.json`` and ``init.json``'s ``meta``, written once
+    at the end (keys in this order; reports and the zoo read them: keep them stable)."""
+
+    algo: str
+    """maml, fomaml or reptile."""
+    engine: str
+    """The meta-gradient engine."""
+    backbone: str
+    """Backbone name."""
+    inner_steps: int
+    """Inner-loop steps per task."""
+    inner_lr: dict[str, float]
+    """Inner rate per parameter group."""
+    meta_lr: float
+    """Outer rate."""
+    outer_update: str
+    """Adam or the Reptile step."""
+    meta_batch: int
+    """Tasks per meta-step."""
+    support_rays: int
+    """Support rays per task."""
+    query_rays: int
+    """Query rays per task."""
+    meta_steps: int
+    """Meta-steps done."""
+    scenes: list[str]
+    """The training scenes."""
+    categories: list[str]
+    """Their categories."""
+    collection: str
+    """The collection folder."""
+    seed: int
+    """Seed of weights and tasks."""
+    final_query_psnr: float | None
+    """Mean query PSNR of the last 10 meta-steps."""
+    final_query_psnr_note: str
+    """How final_query_psnr is taken."""
+    held_out: dict[str, Any] | None
+    """Adaptation on held-out scenes (before/after)."""
+    time_s: float
+    """Wall time of the meta-steps."""
+    world_size: int
+    """Processes."""
+    n_parameters: int
+    """Parameters of the model."""
+    guard_events: list[dict[str, Any]]
+    """The divergence guard's rollbacks."""
+
+    def as_json(self) -> dict[str, Any]:
+        return {f.name: to_jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
 def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Collection, train_records: Sequence,
                   eval_records: Sequence, lrs: dict[str, float], time_s: float, world_size: int,
                   background: torch.Tensor, *, guard_events: Sequence[GuardEvent] = ()) -> dict[str, Any]:
@@ -513,34 +567,34 @@ def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Col
                     "query_psnr_before": round(float(mse_to_psnr(before)), 4),
                     "query_psnr_after": round(float(mse_to_psnr(after)), 4), "inner_steps": config.inner_steps}
     group_lrs = {g.name: lrs[g.param_names[0]] for g in model.param_groups()}
-    summary = {
-        "algo": config.algo,
-        "engine": config.engine,
-        "backbone": config.backbone,
-        "inner_steps": config.inner_steps,
-        "inner_lr": group_lrs,
-        "meta_lr": config.outer_lr,
-        "outer_update": "reptile step" if config.algo == "reptile" else "Adam",
-        "meta_batch": config.meta_batch,
-        "support_rays": config.support_rays,
-        "query_rays": config.query_rays,
-        "meta_steps": records[-1]["step"] if records else 0,
-        "scenes": [r.name for r in train_records],
-        "categories": sorted({r.category for r in train_records}),
-        "collection": str(coll.root),
-        "seed": config.seed,
-        "final_query_psnr": None if final_query is None else round(final_query, 4),
-        "final_query_psnr_note": "mean over the last 10 meta-steps of the meta-batch query PSNR after adaptation",
-        "held_out": held_out,
-        "time_s": round(time_s, 3),
-        "world_size": world_size,
-        "n_parameters": sum(p.numel() for p in model.parameters()),
-        "guard_events": [e.as_json() for e in guard_events],
-    }
+    summary = MetaSummary(
+        algo=config.algo,
+        engine=config.engine,
+        backbone=config.backbone,
+        inner_steps=config.inner_steps,
+        inner_lr=group_lrs,
+        meta_lr=config.outer_lr,
+        outer_update="reptile step" if config.algo == "reptile" else "Adam",
+        meta_batch=config.meta_batch,
+        support_rays=config.support_rays,
+        query_rays=config.query_rays,
+        meta_steps=records[-1]["step"] if records else 0,
+        scenes=[r.name for r in train_records],
+        categories=sorted({r.category for r in train_records}),
+        collection=str(coll.root),
+        seed=config.seed,
+        final_query_psnr=None if final_query is None else round(final_query, 4),
+        final_query_psnr_note="mean over the last 10 meta-steps of the meta-batch query PSNR after adaptation",
+        held_out=held_out,
+        time_s=round(time_s, 3),
+        world_size=world_size,
+        n_parameters=sum(p.numel() for p in model.parameters()),
+        guard_events=[e.as_json() for e in guard_events],
+    ).as_json()
     save_init(out, model, "meta", summary)
     plot_query_curve(records, out / CURVE, title=f"{config.backbone} {config.algo}: {len(train_records)} scenes, "
                                                    f"{config.inner_steps} inner steps, meta-batch {config.meta_batch}")
-    write_json(out / SUMMARY, summary)
+    write_json(out / SUMMARY, summary)  # once, at the end
     return summary
 
 
