@@ -225,7 +225,8 @@ def pretrain_category(
     """
     out = Path(out)
     config.model_config()  # validates backbone, overrides and iterations before any slow work
-    check_target(out, "category", resume=resume, overwrite=overwrite)
+    protect = (config.collection,)  # never the collection read, nor a folder holding it
+    check_target(out, "category", resume=resume, overwrite=overwrite, protect=protect)
     if resume:
         saved = saved_config(out)
         if (Path(saved.collection).resolve(), saved.category) != (Path(config.collection).resolve(), config.category):
@@ -242,7 +243,7 @@ def pretrain_category(
     device = torch.device(config.device)
     model_config = config.model_config(data.scene)
     model = build_model(config.backbone, model_config, data.scene.bounds, seed=config.fit.seed, device=device)
-    with run_folder(out, "category", resume=resume, overwrite=overwrite) as run:
+    with run_folder(out, "category", resume=resume, overwrite=overwrite, protect=protect) as run:
         return _train_category(run.dir, config, collection, records, data, model, model_config, device, resume, callbacks)
 
 

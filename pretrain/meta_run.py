@@ -208,10 +208,11 @@ def check_resumable(saved: MetaConfig, config: MetaConfig, out: Path) -> None:
                               f"resume it with its own settings or start a new --out")
 
 
-def check_run_dir(out: Path, config: MetaConfig, *, resume: bool, overwrite: bool) -> MetaCheckpoint | None:
+def check_run_dir(out: Path, config: MetaConfig, *, resume: bool, overwrite: bool,
+                  protect: Sequence[str | os.PathLike] = ()) -> MetaCheckpoint | None:
     """Check ``out`` can hold this run (before any work; :mod:`nerfmeta.runfolder`'s rules); on resume,
     read and check its checkpoint."""
-    check_target(out, "meta", resume=resume, overwrite=overwrite, protect=())
+    check_target(out, "meta", resume=resume, overwrite=overwrite, protect=protect)
     if not resume:
         return None
     if not (out / CHECKPOINT).is_file() or not (out / CONFIG).is_file():
@@ -407,7 +408,7 @@ def meta_train(
     lrs = inner_lrs(model, *config.inner_lr_resolved)
 
     def prepare() -> tuple[int, float, float, list[dict[str, Any]]]:
-        ckpt = check_run_dir(out, config, resume=resume, overwrite=overwrite)
+        ckpt = check_run_dir(out, config, resume=resume, overwrite=overwrite, protect=(coll.root,))
         if ckpt is None:
             return 0, 0.0, 1.0, []
         restore(model, optimizer, ckpt, out / CHECKPOINT)
@@ -421,7 +422,7 @@ def meta_train(
                                            background=config.background), config.seed, config.support_rays, config.query_rays)
 
     def start_files() -> RunFolder:
-        run = open_run(out, "meta", resume=resume, overwrite=overwrite)  # locked; built aside with overwrite
+        run = open_run(out, "meta", resume=resume, overwrite=overwrite, protect=(coll.root,))  # locked; aside with overwrite
         try:
             if resume:
                 kept = [r for r in read_metrics(run.dir / METRICS) if r["step"] <= start]
