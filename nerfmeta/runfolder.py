@@ -366,6 +366,7 @@ class RunFolder:
         self._locks = locks
         self._aside, self._created = aside, created
         self._committed = False
+        self._keep_work = False
 
     def commit(self) -> None:
         """Swap a run built aside into place (the previous run, if any, is removed); no-op in place."""
@@ -373,12 +374,12 @@ class RunFolder:
             return
         out, work = self.path, self.dir
         trash = out.parent / f".{out.name}.old-{os.getpid()}"
-        if out.exists() and not out.is_dir():
-            raise RunFolderError(f"{out}: a file appeared there during the run; the new run is left in {work}")
+        if (out.exists() and not out.is_dir()) or (has_content(out) and (not is_run_of(out, self.kind)
+                                                                         or foreign_entries(out, self.kind))):
+            self._keep_work = True  # a finished run is never thrown away
+            raise RunFolderError(f"{out}: changed during the run and is no longer a {layout(self.kind).command} run of "
+                                 f"ours; the new run is left in {work}")
         if has_content(out):
-            if not is_run_of(out, self.kind) or foreign_entries(out, self.kind):
-                raise RunFolderError(f"{out}: changed during the run and is no longer a {self.kind} run of ours; "
-                                     f"the new run is left in {work}")
             os.replace(out, trash)
         elif out.is_dir():
             shutil.rmtree(out)  # empty but for our marker, lock or temporary files
@@ -401,7 +402,7 @@ class RunFolder:
         for fd in self._locks:
             _unlock(fd)
         self._locks = []
-        if self._aside and not self._committed:
+        if self._aside and not self._committed and not self._keep_work:
             shutil.rmtree(self.dir, ignore_errors=True)
         elif not self._aside and not has_content(self.dir) and self.dir.is_dir():
             for name in (MARKER, LOCK):

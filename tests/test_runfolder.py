@@ -339,3 +339,14 @@ def test_a_full_disk_during_overwrite_is_one_line_and_keeps_the_previous_run(tin
     assert len(errors) == 1 and "File too large" in errors[0] and "checkpoint.safetensors" in errors[0]
     assert {k: v for k, v in _tree(out).items() if k != LOCK} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_a_finished_run_is_kept_aside_when_its_folder_was_taken_meanwhile(tmp_path):
+    out = tmp_path / "coll"
+    with pytest.raises(RunFolderError, match="the new run is left in"):
+        with run_folder(out, "collection", aside=True) as run:
+            (run.dir / "collection.json").write_text("{}")
+            out.mkdir()
+            (out / "thesis.tex").write_text("x")  # someone else's file appeared at --out during the run
+    assert (out / "thesis.tex").read_text() == "x"
+    assert (run.dir / "collection.json").is_file() and run.dir != out
