@@ -83,7 +83,8 @@ class Layout:
 
 LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
     Layout("fit", "fit", ("config.json", "metrics.jsonl", "checkpoint.safetensors", "summary.json", "route.json", "report.md",
-                   "psnr_vs_iter.png", "psnr_vs_time.png", "comparison_renders_view_*.png"),
+                   "psnr_vs_iter.png", "psnr_vs_time.png", "comparison_renders_view_*.png",
+                   "bench.json", "bench_zoo_sha256.txt"),  # the last two: what scripts/bench_*.py add to their fits
            folders=("renders", "snapshots", "compare"), legacy=("config.json", "metrics.jsonl"), legacy_key="scene"),
     Layout("category", "pretrain category", ("config.json", "metrics.jsonl", "checkpoint.safetensors", "psnr_vs_iter.png", "model.safetensors",
                         "init.json"), legacy=("config.json", "metrics.jsonl"), legacy_key="category"),
