@@ -63,12 +63,15 @@ class Tally:
     trials: int = 0
     survived: int = 0
     lost: int = 0
+    resumed: int = 0
+    """Trials that continued from a checkpoint (the others were refused cleanly, or started again)."""
     notes: list[str] = field(default_factory=list)
 
-    def add(self, ok: bool, lost: int, note: str) -> None:
+    def add(self, ok: bool, lost: int, note: str, *, resumed: bool = False) -> None:
         self.trials += 1
         self.survived += int(ok and lost == 0)
         self.lost += lost
+        self.resumed += int(resumed)
         if note and note not in self.notes:
             self.notes.append(note)
 
@@ -191,8 +194,15 @@ class KillCase:
     """A folder the command reads, which must stay unchanged."""
 
 
-def kill_trial(case: KillCase, work: Path, rng: random.Random, duration: float, *, overwrite_finished: bool) -> tuple[bool, int, str]:
-    """One kill -9 trial; returns (survived, lost, note)."""
+def _short(verdict: str) -> str:
+    """A refusal's reason without the folder it names (the same reason reads the same in every trial)."""
+    reason = verdict.split(": error: ", 1)[-1]
+    return reason.split(": ", 1)[-1][:70] if reason.startswith("/") else reason[:70]
+
+
+def kill_trial(case: KillCase, work: Path, rng: random.Random, duration: float, *,
+               overwrite_finished: bool) -> tuple[bool, int, str, bool]:
+    """One kill -9 trial; returns (survived, lost, note, resumed from a checkpoint)."""
     out = work / "run"
     planted = [plant(work)]
     scene_before = tree(case.scene) if case.scene is not None else None
@@ -201,26 +211,33 @@ def kill_trial(case: KillCase, work: Path, rng: random.Random, duration: float, 
         if verdict != "ok":
             return False, 0, f"first run: {verdict}"
         before = {k: v for k, v in tree(out).items() if not k.startswith(".nerfmeta")}
+    t0 = time.perf_counter()
     proc = start(case.args(out) + (["--overwrite"] if overwrite_finished else []))
-    killed = kill_after(proc, rng.uniform(0.2, 1.0) * duration)
+    if not overwrite_finished:  # kill while the run writes, not while python starts
+        while not (out / "config.json").is_file() and proc.poll() is None and time.perf_counter() - t0 < duration:
+            time.sleep(0.05)
+    left = max(0.2, duration - (time.perf_counter() - t0))
+    killed = kill_after(proc, rng.uniform(0.0, 1.0) * left)
     if not killed and proc.returncode != 0:
-        return False, 0, f"unkilled run exited {proc.returncode}"
+        return False, 0, f"unkilled run exited {proc.returncode}", False
     if overwrite_finished:
         now = {k: v for k, v in tree(out).items() if not k.startswith(".nerfmeta")}
         if now != before and not case.done(out):
-            return False, lost_files(planted, case.scene, scene_before), "the finished run was damaged by a killed --overwrite"
-        return True, lost_files(planted, case.scene, scene_before), ""
+            return False, lost_files(planted, case.scene, scene_before), "the finished run was damaged by a killed --overwrite", False
+        return True, lost_files(planted, case.scene, scene_before), "", False
     if out.is_dir():
         planted.append(plant(out, "notes.txt"))  # a user's file dropped into the run folder after the kill
     code, verdict = nerfmeta(case.args(out) + ["--resume"])
-    note = ""
+    note, resumed = "", verdict == "ok"
     if verdict.startswith("refused"):  # nothing to resume: a plain start must then work, or be refused cleanly
-        note = "resume refused: " + verdict.split(": error: ", 1)[-1][:70]
+        note = "resume refused: " + _short(verdict)
         code, verdict = nerfmeta(case.args(out))
+        if verdict.startswith("refused"):
+            note += "; start refused: " + _short(verdict)
     ok = not verdict.startswith("broken") and (verdict != "ok" or case.done(out))
     if verdict.startswith("broken"):
         note = verdict
-    return ok, lost_files(planted, case.scene, scene_before), note
+    return ok, lost_files(planted, case.scene, scene_before), note, resumed
 
 
 def run_kill_case(case: KillCase, work: Path, trials: int, rng: random.Random, *, with_overwrite: bool = False) -> Tally:
@@ -231,8 +248,8 @@ def run_kill_case(case: KillCase, work: Path, trials: int, rng: random.Random, *
         raise SystemExit(f"{case.name}: the reference run is not complete")
     for i in range(trials):
         trial = work / f"trial{i}"
-        survived, lost, note = kill_trial(case, trial, rng, duration, overwrite_finished=with_overwrite and i % 2 == 1)
-        tally.add(survived, lost, note)
+        survived, lost, note, resumed = kill_trial(case, trial, rng, duration, overwrite_finished=with_overwrite and i % 2 == 1)
+        tally.add(survived, lost, note, resumed=resumed)
         shutil.rmtree(trial, ignore_errors=True)
     return tally
 
@@ -314,11 +331,12 @@ def full_disk(scene: Path, work: Path, trials: int) -> Tally:
                 kept = True
             # with space again: resume (or start again when nothing could be kept)
             again, verdict2 = nerfmeta(args(out, 12) + ["--resume"])
+            resumed = verdict2 == "ok"
             if verdict2.startswith("refused"):
                 again, verdict2 = nerfmeta(args(out, 12) + ["--overwrite"])
             ok = refused and intact and kept and verdict2 == "ok" and complete(out, steps_key="iter", final="summary.json", steps=None)
             tally.add(ok, lost_files(planted, None, None) + (0 if kept else 1),
-                      "" if ok else f"full: {verdict}; intact={intact}; again: {verdict2}")
+                      "" if ok else f"full: {verdict}; intact={intact}; again: {verdict2}", resumed=resumed)
             shutil.rmtree(out, ignore_errors=True)
     finally:
         if tmpfs:
@@ -352,9 +370,9 @@ def tiny_zoo(work: Path) -> tuple[Path, Path, Path]:
 
 
 def table(tallies: Sequence[Tally]) -> str:
-    lines = ["| case | trials | survived | lost | notes |", "|---|---:|---:|---:|---|"]
+    lines = ["| case | trials | survived | lost | resumed from a checkpoint | notes |", "|---|---:|---:|---:|---:|---|"]
     for t in tallies:
-        lines.append(f"| {t.case} | {t.trials} | {t.survived} | {t.lost} | {'; '.join(t.notes[:3]) or ''} |")
+        lines.append(f"| {t.case} | {t.trials} | {t.survived} | {t.lost} | {t.resumed} | {'; '.join(t.notes[:3]) or ''} |")
     return "\n".join(lines)
 
 
@@ -368,7 +386,9 @@ def section_text(tallies: Sequence[Tally], seconds: float, args: argparse.Namesp
         f"other jobs, {seconds:.0f} s): {survived} of {total} trials survived, {lost} user files lost. Each trial runs the real "
         "command line on tiny inputs with user files planted beside the run folder, inside it (after a kill) and in the "
         "scene; a trial survives when every command either succeeded or was refused in one line (exit 2), and the run "
-        "folder ends complete or cleanly refused. Kill moments are uniform over 20-100 % of an uninterrupted run.", "",
+        "folder ends complete or cleanly refused. A kill comes at a uniform moment between the run folder's first file "
+        "and the end of an uninterrupted run (an --overwrite: of the whole run); *resumed* counts the trials that "
+        "continued from a checkpoint rather than being refused (nothing kept yet) and started again.", "",
         table(tallies), "",
     ])
 

@@ -123,6 +123,29 @@ def test_routed_fit_with_scratch_comparison(zoo_dir, new_scenes, tmp_path, monke
     assert (out / "psnr_vs_iter.png").is_file() and (out / "psnr_vs_time.png").is_file()
 
 
+def test_a_routed_fit_writes_its_summary_once_with_route_and_comparison(zoo_dir, new_scenes, tmp_path, monkeypatch):
+    """summary.json of a routed fit is assembled in memory and written once, when the comparison is known."""
+    import nerfmeta.io as io_module
+    import nerfmeta.route as route_module
+
+    monkeypatch.setattr(route_module, "classify_scene", lambda scene, zoo, background: _prediction("chair", False))
+    writes: list[Path] = []
+    real = io_module.write_bytes_atomic
+
+    def counting(path, data):
+        writes.append(Path(path))
+        real(path, data)
+
+    monkeypatch.setattr(io_module, "write_bytes_atomic", counting)
+    out = tmp_path / "routed"
+    summary = classify_and_fit(_config(new_scenes["known"]), out, zoo=load_zoo(zoo_dir), compare=("scratch",))
+    routed_writes = [p for p in writes if p.name == "summary.json" and p.parent.name != "scratch"]
+    assert len(routed_writes) == 1
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved == summary and {"route", "comparison", "test_psnr", "iters"} <= set(saved)
+    assert saved["comparison"]["headline"]
+
+
 def test_real_classifier_route_matches_its_answer(zoo_dir, new_scenes, tmp_path, capsys):
     """End to end through the CLI with the zoo's own classifier: whatever it answers, the route is the decision for it."""
     out = tmp_path / "run"
