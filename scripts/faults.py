@@ -383,7 +383,7 @@ def section_text(tallies: Sequence[Tally], seconds: float, args: argparse.Namesp
     return "\n".join([
         SECTION, "",
         f"`scripts/faults.py --trials {args.trials} --seed {args.seed}` ({time.strftime('%Y-%m-%d')}, 2-core CPU shared with "
-        f"other jobs, {seconds:.0f} s): {survived} of {total} trials survived, {lost} user files lost. Each trial runs the real "
+        f"other jobs, {seconds:.0f} s{', the tiny zoo built beforehand' if args.keep_zoo else ''}): {survived} of {total} trials survived, {lost} user files lost. Each trial runs the real "
         "command line on tiny inputs with user files planted beside the run folder, inside it (after a kill) and in the "
         "scene; a trial survives when every command either succeeded or was refused in one line (exit 2), and the run "
         "folder ends complete or cleanly refused. A kill comes at a uniform moment between the run folder's first file "
