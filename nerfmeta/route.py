@@ -30,7 +30,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback
 from nerfmeta.fit.run import RunConfig, fit_in_folder, run_fit, write_run_summary
 from nerfmeta.io import write_json
-from nerfmeta.runfolder import run_folder
+from nerfmeta.runfolder import CHECKPOINT, run_folder
 from nerfmeta.zoo import Zoo
 
 log = logging.getLogger(__name__)
@@ -223,7 +223,7 @@ def _classify_and_fit_in(folder: Path, config: RunConfig, *, zoo: Zoo | None, fr
     saved_model = json.loads((folder / "config.json").read_text()).get("model")
     for name in planned:
         base_out = folder / COMPARE_DIR / name
-        base_resume = resume and (base_out / "config.json").is_file()
+        base_resume = resume and (base_out / "config.json").is_file() and (base_out / CHECKPOINT).is_file()  # else anew
         run_fit(baseline_config(routed, saved_model), base_out, resume=base_resume, overwrite=not base_resume,
                 callbacks=list(callbacks_for(name)))
         baselines[name] = base_out
