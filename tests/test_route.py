@@ -204,6 +204,33 @@ def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo
     assert json.loads((out / "route.json").read_text())["route"] == "category"
 
 
+def test_a_baseline_killed_before_its_first_checkpoint_is_started_again_on_resume(zoo_dir, new_scenes, tmp_path,
+                                                                                   monkeypatch):
+    import nerfmeta.route as route_module
+
+    monkeypatch.setattr(route_module, "classify_scene", lambda scene, zoo, background: _prediction("chair", False))
+    config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
+                       fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=4))
+    out = tmp_path / "run"
+
+    class Killed(Exception):
+        pass
+
+    def kill_scratch_at_2(name):
+        def callback(record, model, state):
+            if name == "scratch" and record.iter == 2:
+                raise Killed
+        return [callback]
+
+    with pytest.raises(Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), callbacks_for=kill_scratch_at_2)
+    assert (out / "compare" / "scratch" / "config.json").is_file()
+    assert not (out / "compare" / "scratch" / "checkpoint.safetensors").exists() and not (out / "summary.json").exists()
+    summary = classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), resume=True)
+    assert summary["comparison"]["headline"] and summary["iters"] == 6
+    assert [r["iter"] for r in read_metrics(out / "compare" / "scratch" / "metrics.jsonl")] == list(range(1, 7))
+
+
 def test_resume_without_init_resumes_a_run_made_with_an_explicit_init(tiny_scene: Path, tmp_path: Path):
     out = tmp_path / "run"
     args = ["--iters", "4", "--batch-rays", "32", "--checkpoint-every", "2", "--set", "coarse_iters=2", "--set", "growth_steps=[1]"]

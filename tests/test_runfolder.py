@@ -350,3 +350,11 @@ def test_a_finished_run_is_kept_aside_when_its_folder_was_taken_meanwhile(tmp_pa
             (out / "thesis.tex").write_text("x")  # someone else's file appeared at --out during the run
     assert (out / "thesis.tex").read_text() == "x"
     assert (run.dir / "collection.json").is_file() and run.dir != out
+
+
+def test_a_dangling_symlink_as_out_is_one_line(tiny_scene, tmp_path, capsys):
+    link = tmp_path / "run"
+    link.symlink_to(tmp_path / "gone")
+    assert main(["fit", str(tiny_scene), "--out", str(link), *FAST]) == 2
+    assert "dangling" in _one_error_line(capsys)
+    assert link.is_symlink() and not (tmp_path / "gone").exists()
