@@ -177,6 +177,20 @@ def test_compare_needs_auto_and_a_known_baseline(tiny_scene: Path, tmp_path: Pat
     assert not any((tmp_path / n).exists() for n in "abc")
 
 
+class _Killed(Exception):
+    pass
+
+
+def _kill_at(fit_name: str, iteration: int):
+    """A ``callbacks_for`` that raises :class:`_Killed` at ``iteration`` of the fit ``fit_name`` (a kill)."""
+    def callbacks_for(name):
+        def callback(record, model, state):
+            if name == fit_name and record.iter == iteration:
+                raise _Killed
+        return [callback]
+    return callbacks_for
+
+
 def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo_dir, new_scenes, tmp_path, monkeypatch):
     import nerfmeta.route as route_module
 
@@ -184,18 +198,8 @@ def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo
     config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
                        fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=2))
     out = tmp_path / "run"
-
-    class Killed(Exception):
-        pass
-
-    def kill_at_5(name):
-        def callback(record, model, state):
-            if name == "routed" and record.iter == 5:
-                raise Killed
-        return [callback]
-
-    with pytest.raises(Killed):
-        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), callbacks_for=kill_at_5)
+    with pytest.raises(_Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), callbacks_for=_kill_at("routed", 5))
     assert json.loads((out / "config.json").read_text())["route"]["route"] == "category"
     # resuming must continue the recorded route, not ask the classifier again
     monkeypatch.setattr(route_module, "classify_scene", lambda *a: pytest.fail("resume asked the classifier again"))
@@ -212,18 +216,8 @@ def test_a_baseline_killed_before_its_first_checkpoint_is_started_again_on_resum
     config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
                        fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=4))
     out = tmp_path / "run"
-
-    class Killed(Exception):
-        pass
-
-    def kill_scratch_at_2(name):
-        def callback(record, model, state):
-            if name == "scratch" and record.iter == 2:
-                raise Killed
-        return [callback]
-
-    with pytest.raises(Killed):
-        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), callbacks_for=kill_scratch_at_2)
+    with pytest.raises(_Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), callbacks_for=_kill_at("scratch", 2))
     assert (out / "compare" / "scratch" / "config.json").is_file()
     assert not (out / "compare" / "scratch" / "checkpoint.safetensors").exists() and not (out / "summary.json").exists()
     summary = classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), resume=True)
