@@ -13,7 +13,7 @@ Data use (nothing else is read):
 - the ``test`` scenes are not touched (they are for ``scripts/bench_classifier.py``).
 
 The output folder is built under a hidden sibling name and renamed into place at the end, so an
-error or an interruption never leaves a partial classifier at ``out``.
+error or an interruption never leaves a partial classifier at ``out`` (:mod:`nerfmeta.runfolder`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import json
 import logging
 import math
 import os
-import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -34,6 +33,7 @@ import torch.nn.functional as F
 from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
+from nerfmeta.runfolder import check_target, run_folder
 
 from classifier.config import DEFAULT_SCORE, SCORES, TrainConfig
 from classifier.data import ViewSet, augment_views, load_view_set, normalize
@@ -403,31 +403,13 @@ def train_classifier(
         },
         "validation": metrics,
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    trash = out.parent / f".{out.name}.old-{os.getpid()}"
-    try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir()
-        save_classifier(tmp, Classifier(meta, model, stats), extra)
-        write_json(tmp / HISTORY_FILE, history)
-        plot_training_curve(history, tmp / CURVE_FILE, title=f"{config.arch}, {len(splits.categories)} categories")
-        if out.exists():
-            os.replace(out, trash)
-        os.replace(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(trash, ignore_errors=True)
+    with run_folder(out, "classifier", overwrite=overwrite, aside=True) as run:  # built aside, swapped in when complete
+        save_classifier(run.dir, Classifier(meta, model, stats), extra)
+        write_json(run.dir / HISTORY_FILE, history)
+        plot_training_curve(history, run.dir / CURVE_FILE, title=f"{config.arch}, {len(splits.categories)} categories")
     return json.loads((out / META_FILE).read_text())
 
 
 def check_output(out: Path, overwrite: bool) -> None:
-    """Raise :class:`ConfigError` if ``out`` cannot become a classifier folder."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out} exists and is not a folder; choose another --out")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise ConfigError(f"{out} exists and is not empty; pass --overwrite to replace it")
-        if not (out / META_FILE).is_file():
-            raise ConfigError(f"{out} is not empty and holds no classifier.json; --overwrite only replaces a classifier")
+    """Raise a one-line error if ``out`` cannot become a classifier folder (:mod:`nerfmeta.runfolder`'s rules)."""
+    check_target(out, "classifier", overwrite=overwrite)

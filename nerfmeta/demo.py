@@ -14,19 +14,18 @@ Without a zoo (``--zoo none``) the routed fits are from scratch and there is not
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.config import bounded
-from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback, FitConfig
 from nerfmeta.fit.run import RunConfig
 from nerfmeta.report.aggregate import write_report
 from nerfmeta.report.snapshots import SNAPSHOT_ITERS
 from nerfmeta.route import Route, classify_and_fit
+from nerfmeta.runfolder import relocated, run_folder
 from nerfmeta.zoo import Zoo
 
 
@@ -79,12 +78,31 @@ def run_demo(
     callbacks_for: Callable[[str, str], Sequence[Callback]] = lambda scene, fit: (),
     on_route: Callable[[str, Route], None] | None = None,
 ) -> DemoResult:
-    """Generate the two scenes into ``out/scenes``, classify-and-fit each into ``out/NAME``, report into ``out/report``."""
+    """Generate the two scenes into ``out/scenes``, classify-and-fit each into ``out/NAME``, report into ``out/report``.
+
+    The demo folder follows :mod:`nerfmeta.runfolder`'s rules: it is built aside and swapped in when
+    complete, and ``overwrite`` replaces only a demo folder of ours.
+    """
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it")
-        shutil.rmtree(out)
+    with run_folder(out, "demo", overwrite=overwrite, aside=True) as run:
+        built = run.dir
+        result = _demo_into(built, config, zoo=zoo, callbacks_for=callbacks_for, on_route=on_route)
+    return _moved(result, built, run.path)
+
+
+def _moved(result: DemoResult, built: Path, out: Path) -> DemoResult:
+    """``result`` with the paths under the folder it was built in (``built``) moved to ``out``."""
+    def move(p: Path) -> Path:
+        return out / p.relative_to(built)
+
+    return DemoResult({k: move(v) for k, v in result.scenes.items()}, {k: move(v) for k, v in result.runs.items()},
+                      relocated(result.summaries, str(built), str(out)),
+                      None if result.report is None else move(result.report), out)
+
+
+def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None, callbacks_for: Callable[[str, str], Sequence[Callback]],
+               on_route: Callable[[str, Route], None] | None) -> DemoResult:
+    """:func:`run_demo` in the open folder ``out``."""
     coll = load_collection(generate_collection(demo_collection(config), out / "scenes"))
     zoo_fit = zoo.fit if zoo is not None else {}
     defaults = FitConfig()

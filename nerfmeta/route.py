@@ -12,7 +12,9 @@
    optimiser, learning rates, ray batch, budget and seed: only the starting point differs.
 
 ``RUN/summary.json`` gets ``route`` (:meth:`Route.as_json`) and, with a comparison, the numbers
-of the comparison report.
+of the comparison report; it is assembled here and written once, when everything is done. With
+``--overwrite`` the whole run (baselines included) is built aside and swapped in at the end
+(:mod:`nerfmeta.runfolder`).
 """
 
 from __future__ import annotations
@@ -26,8 +28,9 @@ from typing import Any, Callable, Mapping, Sequence
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback
-from nerfmeta.fit.run import RunConfig, prepare_run_dir, run_fit
+from nerfmeta.fit.run import RunConfig, fit_in_folder, run_fit, write_run_summary
 from nerfmeta.io import write_json
+from nerfmeta.runfolder import CHECKPOINT, run_folder
 from nerfmeta.zoo import Zoo
 
 log = logging.getLogger(__name__)
@@ -181,15 +184,25 @@ def classify_and_fit(
     Returns:
         the routed fit's summary with ``route`` and (with a comparison) ``comparison`` added.
     """
-    out = Path(out)
     unknown = sorted(set(compare) - set(BASELINES))
     if unknown:
         raise ConfigError(f"--compare {','.join(unknown)}: supported baselines are {', '.join(BASELINES)}")
-    prepare_run_dir(out, resume=resume, overwrite=overwrite)
+    with run_folder(out, "fit", resume=resume, overwrite=overwrite, protect=(config.scene,)) as run:
+        return _classify_and_fit_in(run.dir, config, zoo=zoo, freeze=freeze, compare=compare, resume=resume,
+                                    callbacks_for=callbacks_for, on_route=on_route)
+
+
+def _classify_and_fit_in(folder: Path, config: RunConfig, *, zoo: Zoo | None, freeze: int | None, compare: Sequence[str],
+                         resume: bool, callbacks_for: Callable[[str], Sequence[Callback]],
+                         on_route: Callable[[Route], None] | None) -> dict[str, Any]:
+    """:func:`classify_and_fit` in an open run folder; ``summary.json`` is assembled here and written once."""
     if resume:  # the decision was recorded in config.json before the routed fit's first step
-        route_doc = json.loads((out / "config.json").read_text()).get("route")
+        try:
+            route_doc = json.loads((folder / "config.json").read_text()).get("route")
+        except (OSError, ValueError):
+            raise ConfigError(f"{folder}: nothing to resume (no readable config.json there)") from None
         if route_doc is None:
-            raise ConfigError(f"{out}/config.json: no routing decision recorded; this run was not made by "
+            raise ConfigError(f"{folder}/config.json: no routing decision recorded; this run was not made by "
                               "nerfmeta fit --init auto (resume it with the --init it was made with)")
         route = Route(**{**route_doc, "known_categories": tuple(route_doc.get("known_categories", ()))})
     else:
@@ -198,34 +211,30 @@ def classify_and_fit(
     if on_route is not None:
         on_route(route)
     routed = routed_config(config, route, zoo)
-    if overwrite and out.exists():
-        import shutil
-
-        shutil.rmtree(out)
-    summary = run_fit(routed, out, resume=resume, callbacks=list(callbacks_for("routed")), record={"route": route.as_json()})
-    write_json(out / "route.json", route.as_json())
-    summary["route"] = route.as_json()
-    write_json(out / "summary.json", summary)
+    planned = [name for name in compare if not (name == "scratch" and route.route == "scratch")]
+    if len(planned) < len(compare):
+        log.info("the routed fit is from scratch already: no separate scratch baseline")
+    summary = fit_in_folder(folder, routed, resume=resume, callbacks=list(callbacks_for("routed")),
+                            record={"route": route.as_json()}, route=route.as_json(), write_summary=not planned)
+    write_json(folder / "route.json", route.as_json())
+    if not planned:
+        return summary.as_json()
     baselines: dict[str, Path] = {}
-    for name in compare:
-        if name == "scratch" and route.route == "scratch":
-            log.info("the routed fit is from scratch already: no separate scratch baseline")
-            continue
-        saved_model = json.loads((out / "config.json").read_text()).get("model")
-        base = baseline_config(routed, saved_model)
-        base_out = out / COMPARE_DIR / name
-        base_resume = resume and (base_out / "config.json").is_file()
-        run_fit(base, base_out, resume=base_resume, overwrite=not base_resume, callbacks=list(callbacks_for(name)))
+    saved_model = json.loads((folder / "config.json").read_text()).get("model")
+    for name in planned:
+        base_out = folder / COMPARE_DIR / name
+        base_resume = resume and (base_out / "config.json").is_file() and (base_out / CHECKPOINT).is_file()  # else anew
+        run_fit(baseline_config(routed, saved_model), base_out, resume=base_resume, overwrite=not base_resume,
+                callbacks=list(callbacks_for(name)))
         baselines[name] = base_out
-    if baselines:
-        from nerfmeta.report.compare import write_comparison
+    from nerfmeta.report.compare import write_comparison
 
-        comparison = write_comparison(out, baselines, out, baseline="scratch", name="routed")  # adds it to summary.json
-        comparison["headline"] = headline(comparison)
-        summary = json.loads((out / "summary.json").read_text())
-        summary["comparison"] = comparison
-        write_json(out / "summary.json", summary)
-    return summary
+    comparison = write_comparison(folder, baselines, folder, baseline="scratch", name="routed", summary=summary.as_json(),
+                                  update_summary=False)
+    comparison["headline"] = headline(comparison)
+    summary = dataclasses.replace(summary, comparison=comparison)
+    write_run_summary(folder, summary)
+    return summary.as_json()
 
 
 def headline(comparison: Mapping[str, Any]) -> list[str]:

@@ -29,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -43,11 +42,13 @@ from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES, build_model, config_from_dict, default_config
 from nerfmeta.fit.loop import Callback, FitConfig, fit
-from nerfmeta.fit.run import MetricsWriter, read_metrics
+from nerfmeta.fit.checkpoint import save_checkpoint
+from nerfmeta.fit.run import MetricsWriter, read_metrics, resume_fit_state
 from nerfmeta.init import save_init
 from nerfmeta.io import to_jsonable, write_json
 from nerfmeta.metrics import mse_to_psnr
 from nerfmeta.report.plots import plot_psnr_curves
+from nerfmeta.runfolder import CHECKPOINT, check_target, run_folder
 
 log = logging.getLogger(__name__)
 
@@ -193,12 +194,16 @@ def category_scene(
     return CategoryData(merged, tuple(r.name for r in records), tuple(owner))
 
 
-def prepare_output(out: Path, *, overwrite: bool) -> None:
-    """Refuse to clobber an existing non-empty folder unless asked to (checked before any work)."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it")
+def saved_config(out: Path) -> CategoryPretrainConfig:
+    """The config a category run in ``out`` was started with (its ``config.json``; ``model`` as resolved then)."""
+    path = out / "config.json"
+    try:
+        data = json.loads(path.read_text())
+        data["fit"] = FitConfig(**data.get("fit", {}))
+        data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
+        return CategoryPretrainConfig(**data)
+    except (OSError, ValueError, TypeError) as err:
+        raise ConfigError(f"{path}: not readable ({err}); nothing to resume") from None
 
 
 def pretrain_category(
@@ -206,18 +211,31 @@ def pretrain_category(
     out: str | Path,
     *,
     overwrite: bool = False,
+    resume: bool = False,
     callbacks: Sequence[Callback] = (),
 ) -> dict[str, Any]:
     """Train the category model of ``config.category`` into the folder ``out``; return its manifest entry.
 
     ``out`` receives ``model.safetensors`` + ``init.json`` (:func:`nerfmeta.init.save_init`, kind
     ``category``, whose ``meta`` is the manifest entry returned here), ``config.json``,
-    ``metrics.jsonl`` and ``psnr_vs_iter.png``. ``init.json`` is written last, so an interrupted
-    run never leaves a loadable half-trained model.
+    ``metrics.jsonl``, ``checkpoint.safetensors`` (the fit loop's, for ``resume``) and
+    ``psnr_vs_iter.png``. ``init.json`` is written last, so an interrupted run never leaves a
+    loadable half-trained model. The folder follows :mod:`nerfmeta.runfolder`'s rules (``overwrite``
+    replaces only a category run of ours, built aside; ``resume`` continues one from its checkpoint
+    with its saved settings, which must name the same collection and category).
     """
     out = Path(out)
     config.model_config()  # validates backbone, overrides and iterations before any slow work
-    prepare_output(out, overwrite=overwrite)
+    protect = (config.collection,)  # never the collection read, nor a folder holding it
+    check_target(out, "category", resume=resume, overwrite=overwrite, protect=protect)
+    if resume:
+        saved = saved_config(out)
+        if (Path(saved.collection).resolve(), saved.category) != (Path(config.collection).resolve(), config.category):
+            raise ConfigError(f"{out} was a category run on {saved.category} of {saved.collection}, not {config.category} "
+                              f"of {config.collection}")
+        if not (out / CHECKPOINT).is_file():
+            raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT} there)")
+        config = saved
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
     collection = load_collection(config.collection)
@@ -227,19 +245,25 @@ def pretrain_category(
     model_config = config.model_config(data.scene)
     check_fit_fits(config.backbone, model_config, data.scene, batch_rays=config.fit.batch_rays, device=device)
     model = build_model(config.backbone, model_config, data.scene.bounds, seed=config.fit.seed, device=device)
+    with run_folder(out, "category", resume=resume, overwrite=overwrite, protect=protect) as run:
+        return _train_category(run.dir, config, collection, records, data, model, model_config, device, resume, callbacks)
 
-    if overwrite and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config)})
+
+def _train_category(out: Path, config: CategoryPretrainConfig, collection: Collection, records: Sequence[SceneRecord],
+                    data: CategoryData, model, model_config, device: torch.device, resume: bool,
+                    callbacks: Sequence[Callback]) -> dict[str, Any]:
+    """Train (or continue) the category model in the open run folder ``out``; return its manifest entry."""
+    state = resume_fit_state(out, model) if resume else None
+    if not resume:
+        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config)})
     writer = MetricsWriter(out / "metrics.jsonl")
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     log.info("category %s: %d scenes, %d training views", config.category, len(records), len(data.scene.splits["train"]))
     try:
-        result = fit(model, data.scene, config.fit, background=background, callbacks=[writer, *callbacks])
+        result = fit(model, data.scene, config.fit, background=background, callbacks=[writer, *callbacks], state=state,
+                     should_checkpoint=lambda st: save_checkpoint(out / CHECKPOINT, model, st))
     finally:
         writer.close()
-
     per_scene: dict[str, list[float]] = {name: [] for name in data.scene_names}
     final_psnr = None
     if result.final is not None:

@@ -4,14 +4,17 @@ Layout of ``RUN/``::
 
     config.json               the MetaConfig (plus the resolved backbone config)
     metrics.jsonl             one line per meta-step: step, time_s, query_psnr, init_psnr, tasks
-    checkpoint.safetensors    latest checkpoint: parameters, Adam moments, step, clock (atomic)
+    checkpoint.safetensors    latest checkpoint: parameters, Adam moments, step, clock (atomic; the one
+                              checkpoint format of nerfmeta.runfolder)
     model.safetensors         the meta-learned initialisation, and
     init.json                 its description (nerfmeta.init format, kind "meta"):
                               ``nerfmeta fit SCENE --init meta:RUN`` starts from it
     summary.json              final figures, incl. the held-out adaptation PSNR
     query_psnr_vs_step.png    query PSNR (after adaptation) against meta-steps
 
-Every file is written atomically, and only by rank 0 of a distributed run. A resumed run
+Every file is written atomically, and only by rank 0 of a distributed run, which also holds the
+folder's lock; :mod:`nerfmeta.runfolder`'s rules apply (``--overwrite`` replaces only a meta-train
+run of ours, built aside and swapped in at the end). A resumed run
 continues from the checkpoint's step and produces the same parameters as an uninterrupted run
 (tasks are a function of (seed, step), see :mod:`pretrain.meta_tasks`).
 
@@ -31,7 +34,6 @@ import json
 import logging
 import math
 import os
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,8 +49,18 @@ from nerfmeta.fields.registry import build_model
 from nerfmeta.fit.guard import DivergenceGuard, GuardEvent
 from nerfmeta.fit.run import read_metrics  # the same metrics.jsonl reader as fit runs (torn last line ignored)
 from nerfmeta.init import save_init
-from nerfmeta.io import atomic_path, save_tensors, to_jsonable, write_json
+from nerfmeta.io import atomic_path, to_jsonable, write_json
 from nerfmeta.metrics import mse_to_psnr
+from nerfmeta.runfolder import (
+    CHECKPOINT,
+    RunFolder,
+    check_target,
+    load_checkpoint,
+    open_run,
+    optimizer_state,
+    optimizer_tensors,
+    save_checkpoint,
+)
 from pretrain.meta import (
     CANONICAL_BOUNDS,
     MetaConfig,
@@ -63,12 +75,11 @@ from pretrain.meta_tasks import TaskSampler, load_task_scenes, select_scenes
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT = "checkpoint.safetensors"
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
 CURVE = "query_psnr_vs_step.png"
-CHECKPOINT_FORMAT = "nerfmeta-meta-checkpoint-1"
+CHECKPOINT_KIND = "meta"
 RESUMABLE_CHANGES = ("meta_steps", "checkpoint_every", "eval_tasks", "device", "guard")
 """Fields a resumed run may change; any other difference from the saved config is refused."""
 
@@ -111,55 +122,38 @@ Progress = Callable[[MetaStepRecord], None]
 def save_meta_checkpoint(path: str | os.PathLike, model: RadianceModel, optimizer: torch.optim.Optimizer | None,
                          step: int, time_s: float, config: MetaConfig, *, lr_guard_scale: float = 1.0,
                          guard_events: Sequence[GuardEvent] = ()) -> None:
-    """Parameters, buffers, Adam moments, step, clock and the guard's rate factor and events, atomically;
-    refuses non-finite values."""
-    tensors: dict[str, torch.Tensor] = {}
-    for name, value in model.state_dict().items():
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            raise FloatingPointError(f"refusing to checkpoint non-finite values in {name}")
-        tensors[f"model.{name}"] = value
-    names = [n for n, _ in model.named_parameters()]
+    """Parameters, buffers, Adam moments, step, clock and the guard's rate factor and events, atomically, in the
+    one checkpoint format of :mod:`nerfmeta.runfolder`; refuses non-finite values."""
+    tensors: dict[str, torch.Tensor] = {f"model.{name}": value for name, value in model.state_dict().items()}
+    optim_meta: dict[str, Any] = {}
     if optimizer is not None:
-        for idx, state in optimizer.state_dict()["state"].items():
-            for key, value in state.items():
-                tensors[f"optim.{names[idx]}.{key}"] = torch.as_tensor(value)
-    meta = {"format": CHECKPOINT_FORMAT, "backbone": model.backbone, "structure": model.structure(), "algo": config.algo,
-            "step": step, "time_s": time_s, "lr_guard_scale": lr_guard_scale, "guard_events": [e.as_json() for e in guard_events]}
-    save_tensors(path, tensors, metadata={"nerfmeta": json.dumps(meta)})
+        optim, optim_meta = optimizer_tensors(optimizer.state_dict())
+        tensors.update(optim)
+    state = {"backbone": model.backbone, "structure": model.structure(), "algo": config.algo, "step": step, "time_s": time_s,
+             "lr_guard_scale": lr_guard_scale, "guard_events": [e.as_json() for e in guard_events], "optimizer": optim_meta}
+    save_checkpoint(path, CHECKPOINT_KIND, tensors, state)
 
 
 @dataclass(frozen=True)
 class MetaCheckpoint:
+    """A meta-training checkpoint read back (``optim_state``: the optimiser's ``state_dict()``, None for Reptile)."""
+
     step: int
     time_s: float
     backbone: str
     model_state: dict[str, torch.Tensor]
-    optim_state: dict[str, dict[str, torch.Tensor]]
+    optim_state: dict[str, Any] | None
     lr_guard_scale: float = 1.0
     guard_events: tuple[GuardEvent, ...] = ()
 
 
 def load_meta_checkpoint(path: str | os.PathLike) -> MetaCheckpoint:
     """Read a checkpoint written by :func:`save_meta_checkpoint` (one-line error if unreadable)."""
-    from safetensors import safe_open
-
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = json.loads((f.metadata() or {}).get("nerfmeta", "{}"))
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as err:  # OSError, JSON errors or safetensors' own error type
-        raise ConfigError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from None
-    if meta.get("format") != CHECKPOINT_FORMAT:
-        raise ConfigError(f"{path}: not a nerfmeta meta-train checkpoint (format {meta.get('format')!r})")
-    model_state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
-    optim: dict[str, dict[str, torch.Tensor]] = {}
-    for key, value in tensors.items():
-        if key.startswith("optim."):
-            name, _, what = key[len("optim."):].rpartition(".")
-            optim.setdefault(name, {})[what] = value
+    ckpt = load_checkpoint(path, CHECKPOINT_KIND)
+    meta = ckpt.state
     events = tuple(GuardEvent.from_json(e) for e in meta.get("guard_events", []))
-    return MetaCheckpoint(int(meta["step"]), float(meta["time_s"]), str(meta["backbone"]), model_state, optim,
-                          float(meta.get("lr_guard_scale", 1.0)), events)
+    return MetaCheckpoint(int(meta["step"]), float(meta["time_s"]), str(meta["backbone"]), ckpt.prefixed("model."),
+                          optimizer_state(ckpt, meta.get("optimizer")), float(meta.get("lr_guard_scale", 1.0)), events)
 
 
 def restore(model: RadianceModel, optimizer: torch.optim.Optimizer | None, ckpt: MetaCheckpoint, path: Path) -> None:
@@ -177,9 +171,7 @@ def restore(model: RadianceModel, optimizer: torch.optim.Optimizer | None, ckpt:
     device = next(iter(own.values())).device
     model.load_state_dict({k: v.to(device) for k, v in ckpt.model_state.items()})
     if optimizer is not None and ckpt.optim_state:
-        names = [n for n, _ in model.named_parameters()]
-        state = {i: {k: v.to(device) if k != "step" else v for k, v in ckpt.optim_state[n].items()}
-                 for i, n in enumerate(names) if n in ckpt.optim_state}
+        state = {i: {k: v.to(device) if k != "step" else v for k, v in st.items()} for i, st in ckpt.optim_state["state"].items()}
         optimizer.load_state_dict({"state": state, "param_groups": optimizer.state_dict()["param_groups"]})
 
 
@@ -217,23 +209,17 @@ def check_resumable(saved: MetaConfig, config: MetaConfig, out: Path) -> None:
                               f"resume it with its own settings or start a new --out")
 
 
-def prepare_run_dir(out: Path, config: MetaConfig, *, resume: bool, overwrite: bool) -> MetaCheckpoint | None:
-    """Check ``out`` can hold this run (before any work); on resume, read and check its checkpoint."""
-    if resume and overwrite:
-        raise ConfigError("--resume and --overwrite cannot be combined")
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
-    non_empty = out.is_dir() and any(out.iterdir())
-    if resume:
-        if not (out / CHECKPOINT).is_file() or not (out / CONFIG).is_file():
-            raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT} and {CONFIG} there)")
-        check_resumable(saved_config(out), config, out)
-        return load_meta_checkpoint(out / CHECKPOINT)
-    if non_empty and not overwrite:
-        raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it or --resume to continue it")
-    if non_empty and not ((out / CONFIG).is_file() or (out / CHECKPOINT).is_file()):
-        raise ConfigError(f"{out}: is not a meta-train run folder; --overwrite only replaces one")
-    return None
+def check_run_dir(out: Path, config: MetaConfig, *, resume: bool, overwrite: bool,
+                  protect: Sequence[str | os.PathLike] = ()) -> MetaCheckpoint | None:
+    """Check ``out`` can hold this run (before any work; :mod:`nerfmeta.runfolder`'s rules); on resume,
+    read and check its checkpoint."""
+    check_target(out, "meta", resume=resume, overwrite=overwrite, protect=protect)
+    if not resume:
+        return None
+    if not (out / CHECKPOINT).is_file() or not (out / CONFIG).is_file():
+        raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT} and {CONFIG} there)")
+    check_resumable(saved_config(out), config, out)
+    return load_meta_checkpoint(out / CHECKPOINT)
 
 
 def training_scenes(collection: Collection, config: MetaConfig) -> list:
@@ -425,7 +411,7 @@ def meta_train(
     lrs = inner_lrs(model, *config.inner_lr_resolved)
 
     def prepare() -> tuple[int, float, float, list[dict[str, Any]]]:
-        ckpt = prepare_run_dir(out, config, resume=resume, overwrite=overwrite)
+        ckpt = check_run_dir(out, config, resume=resume, overwrite=overwrite, protect=(coll.root,))
         if ckpt is None:
             return 0, 0.0, 1.0, []
         restore(model, optimizer, ckpt, out / CHECKPOINT)
@@ -438,18 +424,39 @@ def meta_train(
     sampler = TaskSampler(load_task_scenes(coll, train_records, device=device, downscale=config.downscale,
                                            background=config.background), config.seed, config.support_rays, config.query_rays)
 
-    def start_files() -> None:
-        if overwrite and out.exists():
-            shutil.rmtree(out)
-        out.mkdir(parents=True, exist_ok=True)
-        if resume:
-            kept = [r for r in read_metrics(out / METRICS) if r["step"] <= start]
-            with atomic_path(out / METRICS) as tmp:
-                tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
-        else:
-            write_json(out / CONFIG, {**to_jsonable(config), "model_config": to_jsonable(config.model_config())})
+    def start_files() -> RunFolder:
+        run = open_run(out, "meta", resume=resume, overwrite=overwrite, protect=(coll.root,))  # locked; aside with overwrite
+        try:
+            if resume:
+                kept = [r for r in read_metrics(run.dir / METRICS) if r["step"] <= start]
+                with atomic_path(run.dir / METRICS) as tmp:
+                    tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
+            else:
+                write_json(run.dir / CONFIG, {**to_jsonable(config), "model_config": to_jsonable(config.model_config())})
+        except BaseException:
+            run.close()
+            raise
+        return run
 
-    dist.on_main(start_files)  # only now, once every input has been read and checked
+    run = dist.on_main(start_files)  # only now, once every input has been read and checked
+    try:
+        summary = _train_into(run.dir if run is not None else out, config, model, optimizer, sampler, coll, train_records,
+                              eval_records, lrs, background, start, time_s, guard_scale, guard_events, progress, dist)
+        if run is not None:
+            run.commit()
+    finally:
+        if run is not None:
+            run.close()
+    dist.barrier()
+    return summary if summary is not None else {"meta_steps": config.meta_steps, "time_s": time_s}
+
+
+def _train_into(folder: Path, config: MetaConfig, model: RadianceModel, optimizer: torch.optim.Optimizer | None,
+                sampler: TaskSampler, coll: Collection, train_records: Sequence, eval_records: Sequence,
+                lrs: dict[str, float], background: torch.Tensor, start: int, time_s: float, guard_scale: float,
+                guard_events: list[dict[str, Any]], progress: Progress | None, dist: DistContext) -> dict[str, Any] | None:
+    """The meta-steps from ``start`` on, then (rank 0) the outputs, written into the open run folder ``folder``."""
+    device = background.device
     if config.meta_batch < dist.world_size:
         log.warning("meta-batch %d is smaller than the %d processes: some processes idle", config.meta_batch, dist.world_size)
     log.info("meta-training %s/%s on %d scenes, %d process(es), from step %d", config.backbone, config.algo,
@@ -458,7 +465,7 @@ def meta_train(
     guard = DivergenceGuard(config.guard, lr_scale=guard_scale, events=[GuardEvent.from_json(e) for e in guard_events],
                             what="meta-train")
     guard.retake(start, model, optimizer)
-    metrics = open(out / METRICS, "a", encoding="utf-8") if dist.is_main else None
+    metrics = open(folder / METRICS, "a", encoding="utf-8") if dist.is_main else None
     try:
         for step in range(start, config.meta_steps):
             t0 = time.perf_counter()
@@ -478,21 +485,73 @@ def meta_train(
             if progress is not None:
                 progress(record)
             if config.checkpoint_every > 0 and done % config.checkpoint_every == 0 and done < config.meta_steps:
-                save_meta_checkpoint(out / CHECKPOINT, model, optimizer, done, time_s, config,
+                save_meta_checkpoint(folder / CHECKPOINT, model, optimizer, done, time_s, config,
                                      lr_guard_scale=guard.lr_scale, guard_events=guard.events)
     finally:
         if metrics is not None:
             metrics.close()
 
     def finish() -> dict[str, Any]:
-        save_meta_checkpoint(out / CHECKPOINT, model, optimizer, max(start, config.meta_steps), time_s, config,
+        save_meta_checkpoint(folder / CHECKPOINT, model, optimizer, max(start, config.meta_steps), time_s, config,
                              lr_guard_scale=guard.lr_scale, guard_events=guard.events)
-        return write_outputs(out, config, model, coll, train_records, eval_records, lrs, time_s, dist.world_size, background,
+        return write_outputs(folder, config, model, coll, train_records, eval_records, lrs, time_s, dist.world_size, background,
                              guard_events=guard.events)
 
-    summary = dist.on_main(finish)
-    dist.barrier()
-    return summary if summary is not None else {"meta_steps": config.meta_steps, "time_s": time_s}
+    return dist.on_main(finish)
+
+
+@dataclass(frozen=True)
+class MetaSummary:
+    """The final figures of a meta-training run: ``summary.json`` and ``init.json``'s ``meta``, written once
+    at the end (keys in this order; reports and the zoo read them: keep them stable)."""
+
+    algo: str
+    """maml, fomaml or reptile."""
+    engine: str
+    """The meta-gradient engine."""
+    backbone: str
+    """Backbone name."""
+    inner_steps: int
+    """Inner-loop steps per task."""
+    inner_lr: dict[str, float]
+    """Inner rate per parameter group."""
+    meta_lr: float
+    """Outer rate."""
+    outer_update: str
+    """Adam or the Reptile step."""
+    meta_batch: int
+    """Tasks per meta-step."""
+    support_rays: int
+    """Support rays per task."""
+    query_rays: int
+    """Query rays per task."""
+    meta_steps: int
+    """Meta-steps done."""
+    scenes: list[str]
+    """The training scenes."""
+    categories: list[str]
+    """Their categories."""
+    collection: str
+    """The collection folder."""
+    seed: int
+    """Seed of weights and tasks."""
+    final_query_psnr: float | None
+    """Mean query PSNR of the last 10 meta-steps."""
+    final_query_psnr_note: str
+    """How final_query_psnr is taken."""
+    held_out: dict[str, Any] | None
+    """Adaptation on held-out scenes (before/after)."""
+    time_s: float
+    """Wall time of the meta-steps."""
+    world_size: int
+    """Processes."""
+    n_parameters: int
+    """Parameters of the model."""
+    guard_events: list[dict[str, Any]]
+    """The divergence guard's rollbacks."""
+
+    def as_json(self) -> dict[str, Any]:
+        return {f.name: to_jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
 
 def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Collection, train_records: Sequence,
@@ -512,34 +571,34 @@ def write_outputs(out: Path, config: MetaConfig, model: RadianceModel, coll: Col
                     "query_psnr_before": round(float(mse_to_psnr(before)), 4),
                     "query_psnr_after": round(float(mse_to_psnr(after)), 4), "inner_steps": config.inner_steps}
     group_lrs = {g.name: lrs[g.param_names[0]] for g in model.param_groups()}
-    summary = {
-        "algo": config.algo,
-        "engine": config.engine,
-        "backbone": config.backbone,
-        "inner_steps": config.inner_steps,
-        "inner_lr": group_lrs,
-        "meta_lr": config.outer_lr,
-        "outer_update": "reptile step" if config.algo == "reptile" else "Adam",
-        "meta_batch": config.meta_batch,
-        "support_rays": config.support_rays,
-        "query_rays": config.query_rays,
-        "meta_steps": records[-1]["step"] if records else 0,
-        "scenes": [r.name for r in train_records],
-        "categories": sorted({r.category for r in train_records}),
-        "collection": str(coll.root),
-        "seed": config.seed,
-        "final_query_psnr": None if final_query is None else round(final_query, 4),
-        "final_query_psnr_note": "mean over the last 10 meta-steps of the meta-batch query PSNR after adaptation",
-        "held_out": held_out,
-        "time_s": round(time_s, 3),
-        "world_size": world_size,
-        "n_parameters": sum(p.numel() for p in model.parameters()),
-        "guard_events": [e.as_json() for e in guard_events],
-    }
+    summary = MetaSummary(
+        algo=config.algo,
+        engine=config.engine,
+        backbone=config.backbone,
+        inner_steps=config.inner_steps,
+        inner_lr=group_lrs,
+        meta_lr=config.outer_lr,
+        outer_update="reptile step" if config.algo == "reptile" else "Adam",
+        meta_batch=config.meta_batch,
+        support_rays=config.support_rays,
+        query_rays=config.query_rays,
+        meta_steps=records[-1]["step"] if records else 0,
+        scenes=[r.name for r in train_records],
+        categories=sorted({r.category for r in train_records}),
+        collection=str(coll.root),
+        seed=config.seed,
+        final_query_psnr=None if final_query is None else round(final_query, 4),
+        final_query_psnr_note="mean over the last 10 meta-steps of the meta-batch query PSNR after adaptation",
+        held_out=held_out,
+        time_s=round(time_s, 3),
+        world_size=world_size,
+        n_parameters=sum(p.numel() for p in model.parameters()),
+        guard_events=[e.as_json() for e in guard_events],
+    ).as_json()
     save_init(out, model, "meta", summary)
     plot_query_curve(records, out / CURVE, title=f"{config.backbone} {config.algo}: {len(train_records)} scenes, "
                                                    f"{config.inner_steps} inner steps, meta-batch {config.meta_batch}")
-    write_json(out / SUMMARY, summary)
+    write_json(out / SUMMARY, summary)  # once, at the end
     return summary
 
 

@@ -173,3 +173,41 @@ def test_existing_output_needs_overwrite(collection, tmp_path, capsys):
                  "--backbone", "nerf"])
     assert code == 2 and "--overwrite" in _one_error_line(capsys)
     assert (out / "keep.txt").read_text() == "mine"
+
+
+class _Kill(Exception):
+    pass
+
+
+def test_a_killed_category_run_resumes_to_the_uninterrupted_model(collection, tmp_path):
+    """Category pretraining checkpoints like a fit and --resume continues it bit for bit."""
+    model = {"depth": 2, "width": 16, "skips": [], "n_samples": 8, "pos_freqs": 3, "dir_freqs": 2}
+    config = CategoryPretrainConfig(collection=str(collection), category="mug", backbone="nerf", model=model,
+                                    fit=FitConfig(iters=8, batch_rays=64, eval_every=0, checkpoint_every=3))
+    pretrain_category(config, tmp_path / "full")
+
+    def kill_at_5(record, model, state):
+        if record.iter == 5:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        pretrain_category(config, tmp_path / "killed", callbacks=[kill_at_5])
+    assert not (tmp_path / "killed" / "init.json").exists()
+    pretrain_category(config, tmp_path / "killed", resume=True)
+    from safetensors.torch import load_file
+
+    a, b = load_file(str(tmp_path / "full" / "model.safetensors")), load_file(str(tmp_path / "killed" / "model.safetensors"))
+    assert sorted(a) == sorted(b) and all(torch.equal(a[k], b[k]) for k in a)
+    iters = [json.loads(line)["iter"] for line in (tmp_path / "killed" / "metrics.jsonl").read_text().splitlines()]
+    assert iters == list(range(1, 9))
+
+
+def test_overwrite_keeps_a_user_file_in_a_category_folder(collection, tmp_path, capsys):
+    out = tmp_path / "model"
+    args = ["pretrain", "category", str(collection), "--category", "chair", "--out", str(out), "--iters", "2",
+            "--backbone", "nerf", *NERF_TINY]
+    assert main(args) == 0
+    (out / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main([*args, "--overwrite"]) == 2 and "notes.txt" in _one_error_line(capsys)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "init.json").is_file()

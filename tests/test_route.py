@@ -123,6 +123,29 @@ def test_routed_fit_with_scratch_comparison(zoo_dir, new_scenes, tmp_path, monke
     assert (out / "psnr_vs_iter.png").is_file() and (out / "psnr_vs_time.png").is_file()
 
 
+def test_a_routed_fit_writes_its_summary_once_with_route_and_comparison(zoo_dir, new_scenes, tmp_path, monkeypatch):
+    """summary.json of a routed fit is assembled in memory and written once, when the comparison is known."""
+    import nerfmeta.io as io_module
+    import nerfmeta.route as route_module
+
+    monkeypatch.setattr(route_module, "classify_scene", lambda scene, zoo, background: _prediction("chair", False))
+    writes: list[Path] = []
+    real = io_module.write_bytes_atomic
+
+    def counting(path, data):
+        writes.append(Path(path))
+        real(path, data)
+
+    monkeypatch.setattr(io_module, "write_bytes_atomic", counting)
+    out = tmp_path / "routed"
+    summary = classify_and_fit(_config(new_scenes["known"]), out, zoo=load_zoo(zoo_dir), compare=("scratch",))
+    routed_writes = [p for p in writes if p.name == "summary.json" and p.parent.name != "scratch"]
+    assert len(routed_writes) == 1
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved == summary and {"route", "comparison", "test_psnr", "iters"} <= set(saved)
+    assert saved["comparison"]["headline"]
+
+
 def test_real_classifier_route_matches_its_answer(zoo_dir, new_scenes, tmp_path, capsys):
     """End to end through the CLI with the zoo's own classifier: whatever it answers, the route is the decision for it."""
     out = tmp_path / "run"
@@ -154,6 +177,20 @@ def test_compare_needs_auto_and_a_known_baseline(tiny_scene: Path, tmp_path: Pat
     assert not any((tmp_path / n).exists() for n in "abc")
 
 
+class _Killed(Exception):
+    pass
+
+
+def _kill_at(fit_name: str, iteration: int):
+    """A ``callbacks_for`` that raises :class:`_Killed` at ``iteration`` of the fit ``fit_name`` (a kill)."""
+    def callbacks_for(name):
+        def callback(record, model, state):
+            if name == fit_name and record.iter == iteration:
+                raise _Killed
+        return [callback]
+    return callbacks_for
+
+
 def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo_dir, new_scenes, tmp_path, monkeypatch):
     import nerfmeta.route as route_module
 
@@ -161,24 +198,31 @@ def test_auto_fit_killed_during_the_routed_fit_resumes_on_the_recorded_route(zoo
     config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
                        fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=2))
     out = tmp_path / "run"
-
-    class Killed(Exception):
-        pass
-
-    def kill_at_5(name):
-        def callback(record, model, state):
-            if name == "routed" and record.iter == 5:
-                raise Killed
-        return [callback]
-
-    with pytest.raises(Killed):
-        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), callbacks_for=kill_at_5)
+    with pytest.raises(_Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), callbacks_for=_kill_at("routed", 5))
     assert json.loads((out / "config.json").read_text())["route"]["route"] == "category"
     # resuming must continue the recorded route, not ask the classifier again
     monkeypatch.setattr(route_module, "classify_scene", lambda *a: pytest.fail("resume asked the classifier again"))
     summary = classify_and_fit(config, out, zoo=load_zoo(zoo_dir), resume=True)
     assert summary["route"]["route"] == "category" and summary["init"] == "category" and summary["iters"] == 6
     assert json.loads((out / "route.json").read_text())["route"] == "category"
+
+
+def test_a_baseline_killed_before_its_first_checkpoint_is_started_again_on_resume(zoo_dir, new_scenes, tmp_path,
+                                                                                   monkeypatch):
+    import nerfmeta.route as route_module
+
+    monkeypatch.setattr(route_module, "classify_scene", lambda scene, zoo, background: _prediction("chair", False))
+    config = RunConfig(scene=str(new_scenes["known"]), backbone="nerf", model=TINY_MODEL,
+                       fit=FitConfig(iters=6, batch_rays=64, eval_every=3, checkpoint_every=4))
+    out = tmp_path / "run"
+    with pytest.raises(_Killed):
+        classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), callbacks_for=_kill_at("scratch", 2))
+    assert (out / "compare" / "scratch" / "config.json").is_file()
+    assert not (out / "compare" / "scratch" / "checkpoint.safetensors").exists() and not (out / "summary.json").exists()
+    summary = classify_and_fit(config, out, zoo=load_zoo(zoo_dir), compare=("scratch",), resume=True)
+    assert summary["comparison"]["headline"] and summary["iters"] == 6
+    assert [r["iter"] for r in read_metrics(out / "compare" / "scratch" / "metrics.jsonl")] == list(range(1, 7))
 
 
 def test_resume_without_init_resumes_a_run_made_with_an_explicit_init(tiny_scene: Path, tmp_path: Path):

@@ -19,7 +19,6 @@ import logging
 import math
 import multiprocessing
 import os
-import shutil
 import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from nerfmeta.collection.shapes import Shape, shape_bounds, shape_from_json, sha
 from nerfmeta.data.write import write_blender_scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
+from nerfmeta.runfolder import check_target, run_folder
 from nerfmeta.render.cameras import fibonacci_directions, look_at
 
 log = logging.getLogger(__name__)
@@ -270,14 +270,8 @@ def collection_document(config: CollectionConfig, records: list[SceneRecord]) ->
 
 
 def check_output(out: Path, overwrite: bool) -> None:
-    """Raise :class:`ConfigError` if ``out`` cannot become a collection folder."""
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out} exists and is not a folder; choose another OUT")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise ConfigError(f"{out} exists and is not empty; pass --overwrite to replace it")
-        if not (out / "collection.json").is_file():
-            raise ConfigError(f"{out} is not empty and holds no collection.json; --overwrite only replaces a collection")
+    """Raise a one-line error if ``out`` cannot become a collection folder (:mod:`nerfmeta.runfolder`'s rules)."""
+    check_target(out, "collection", overwrite=overwrite)
 
 
 def write_scene(record: SceneRecord, config: CollectionConfig, root: str | os.PathLike) -> int:
@@ -324,13 +318,8 @@ def generate_collection(
     out = Path(os.path.abspath(out))
     check_output(out, overwrite)
     records = plan_collection(config)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    trash = out.parent / f".{out.name}.old-{os.getpid()}"
-    try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir()
+    with run_folder(out, "collection", overwrite=overwrite, aside=True) as run:  # built aside, swapped in when complete
+        tmp = run.dir
         if workers == 1 or len(records) == 1:
             for record in records:
                 n = write_scene(record, config, tmp)
@@ -350,13 +339,7 @@ def generate_collection(
                     pool.shutdown(wait=True, cancel_futures=True)
                     raise
         write_json(tmp / "collection.json", collection_document(config, records))
-        if out.exists():
-            os.replace(out, trash)
-        os.replace(tmp, out)
-        log.info("wrote %d scenes to %s", len(records), out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(trash, ignore_errors=True)
+    log.info("wrote %d scenes to %s", len(records), out)
     return out / "collection.json"
 
 

@@ -13,9 +13,9 @@ from nerfmeta.fit.loop import FitConfig
 
 PRETRAIN_OPTIONS = ("category", "backbone", "max_scenes", "downscale", "background", "device")
 """The ``CategoryPretrainConfig`` fields that are options (the collection is positional; ``model`` is ``--set``)."""
-FIT_OPTIONS = ("iters", "batch_rays", "seed", "eval_every")
+FIT_OPTIONS = ("iters", "batch_rays", "seed", "eval_every", "checkpoint_every")
 """The :class:`FitConfig` fields that are options of a category pretraining."""
-FIT_DEFAULTS = {"eval_every": 0, "checkpoint_every": 0}
+FIT_DEFAULTS = {"eval_every": 0}
 """Where a category pretraining's optimisation settings differ from a fit's defaults."""
 
 
@@ -52,7 +52,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a backbone config field (repeatable; typed and checked like the options; the fields are listed in "
                    "'nerfmeta fit --help')")
-    c.add_argument("--overwrite", action="store_true", help="replace an existing DIR")
+    c.add_argument("--resume", action="store_true", help="continue the category run in DIR from its checkpoint")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing DIR (only a category run of ours)")
     c.set_defaults(func=run_category)
 
 
@@ -83,7 +84,7 @@ def run_category(args: argparse.Namespace) -> int:
         **values, "collection": str(Path(args.collection)), "model": parse_overrides(args.set, backbone), "fit": fit_config})
     bar = _LazyBar(fit_config)
     try:
-        manifest = pretrain_category(config, args.out, overwrite=args.overwrite, callbacks=[bar])
+        manifest = pretrain_category(config, args.out, overwrite=args.overwrite, resume=args.resume, callbacks=[bar])
     finally:
         bar.close()
     print(f"category model '{manifest['category']}' ({manifest['backbone']}): {len(manifest['scenes'])} scenes, "

@@ -6,7 +6,8 @@ Layout of ``RUN/``::
                              freeze), plus the resolved init folder, its hash and the frozen layers
     metrics.jsonl            one line per iteration: iter, time_s, train_psnr[, test_psnr][, event]
     checkpoint.safetensors   latest checkpoint (model, optimiser, RNG, fit state), atomic
-    summary.json             final figures (written at the end)
+    summary.json             final figures (:class:`FitSummary`, written once at the end)
+    .nerfmeta-run, .nerfmeta-lock   marker and lock of :mod:`nerfmeta.runfolder` (its rules apply)
     psnr_vs_iter.png, psnr_vs_time.png
     renders/test_XXX.png     ground truth | prediction, for the first test views
     snapshots/               renders at ``snapshot_iters`` and the end (only when set; see
@@ -26,7 +27,6 @@ import dataclasses
 import json
 import logging
 import resource
-import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,11 +42,12 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
-from nerfmeta.fit.loop import Callback, FitConfig, FitResult, StepRecord, fit
+from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
 from nerfmeta.report.snapshots import SNAPSHOT_DIR, SnapshotWriter, default_views
+from nerfmeta.runfolder import run_folder, write_summary
 
 log = logging.getLogger(__name__)
 
@@ -217,18 +218,15 @@ class MetricsWriter:
         self.file.close()
 
 
-def prepare_run_dir(out: Path, *, resume: bool, overwrite: bool) -> None:
-    """Refuse to clobber an existing non-empty run unless asked to (checked before any work)."""
-    if resume and overwrite:
-        raise ConfigError("--resume and --overwrite cannot be combined")
-    exists = out.exists() and any(out.iterdir()) if out.is_dir() else out.exists()
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
-    if resume:
-        if not (out / CHECKPOINT_NAME).exists() or not (out / "config.json").exists():
-            raise ConfigError(f"{out}: nothing to resume (no {CHECKPOINT_NAME} and config.json there)")
-    elif exists and not overwrite:
-        raise ConfigError(f"{out}: folder exists and is not empty; pass --overwrite to replace it or --resume to continue it")
+def resume_fit_state(folder: Path, model: RadianceModel) -> FitState:
+    """Load the fit-loop checkpoint of the run in ``folder`` into ``model`` and drop the metrics records
+    written after it (a kill between two checkpoints leaves some); return the state to continue from."""
+    ckpt = load_checkpoint(folder / CHECKPOINT_NAME)
+    restore_model(model, ckpt)
+    kept = [r for r in read_metrics(folder / "metrics.jsonl") if r["iter"] <= ckpt.state.step]
+    with atomic_path(folder / "metrics.jsonl") as tmp:
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    return ckpt.state
 
 
 def run_fit(
@@ -242,16 +240,37 @@ def run_fit(
 ) -> dict[str, Any]:
     """Fit a scene into the run folder ``out`` and return the summary (also ``summary.json``).
 
-    With ``resume=True`` the saved ``config.json`` is used and the fit continues from the
-    checkpoint; ``config`` only has to name the same scene. ``record`` adds keys of
+    The folder follows :mod:`nerfmeta.runfolder`'s rules: a new run needs an absent or empty
+    folder; ``overwrite`` replaces only a fit run of ours (built aside, swapped in at the end);
+    ``resume`` continues one from its checkpoint with its saved ``config.json`` (``config`` only has
+    to name the same scene); the folder is locked against a second writer. ``record`` adds keys of
     :data:`RESOLVED_KEYS` (the routing decision) to ``config.json``, written before the first step.
     """
-    out = Path(out)
-    prepare_run_dir(out, resume=resume, overwrite=overwrite)
+    with run_folder(out, "fit", resume=resume, overwrite=overwrite, protect=(config.scene,)) as run:
+        return fit_in_folder(run.dir, config, resume=resume, callbacks=callbacks, record=record).as_json()
+
+
+def fit_in_folder(
+    folder: Path,
+    config: RunConfig,
+    *,
+    resume: bool = False,
+    callbacks: Sequence[Callback] = (),
+    record: Mapping[str, Any] | None = None,
+    route: Mapping[str, Any] | None = None,
+    write_summary: bool = True,
+) -> "FitSummary":
+    """Fit into an open run folder (:func:`nerfmeta.runfolder.open_run`'s ``dir``); see :func:`run_fit`.
+
+    ``route`` goes into the summary; with ``write_summary=False`` the caller writes ``summary.json``
+    (once, when it has added what it owns, e.g. the comparison of a routed fit).
+    """
     if resume:
-        saved = RunConfig.from_json(json.loads((out / "config.json").read_text()))
+        if not (folder / CHECKPOINT_NAME).is_file() or not (folder / "config.json").is_file():
+            raise ConfigError(f"{folder}: nothing to resume (no {CHECKPOINT_NAME} and config.json there)")
+        saved = RunConfig.from_json(json.loads((folder / "config.json").read_text()))
         if Path(saved.scene).resolve() != Path(config.scene).resolve():
-            raise ConfigError(f"{out} was a run on {saved.scene}, not {config.scene}")
+            raise ConfigError(f"{folder} was a run on {saved.scene}, not {config.scene}")
         config = saved
     config.model_config()  # validate the overrides before any slow work
     if config.device.startswith("cuda") and not torch.cuda.is_available():
@@ -263,42 +282,35 @@ def run_fit(
     check_fit_fits(config.backbone, config.model_config(scene), scene, batch_rays=config.fit.batch_rays, device=device)
     model, model_config, init = build_initial_model(config, scene, device)
 
-    if overwrite and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    state = None
-    if resume:
-        ckpt = load_checkpoint(out / CHECKPOINT_NAME)
-        restore_model(model, ckpt)
-        state = ckpt.state
-        kept = [r for r in read_metrics(out / "metrics.jsonl") if r["iter"] <= state.step]
-        with atomic_path(out / "metrics.jsonl") as tmp:
-            tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
-    else:
+    state = resume_fit_state(folder, model) if resume else None
+    if not resume:
         extra = dict(record or {})
         if set(extra) - set(RESOLVED_KEYS):
             raise ValueError(f"record keys must be among {RESOLVED_KEYS}, got {sorted(extra)}")
-        write_json(out / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json(), **extra})
-    writer = MetricsWriter(out / "metrics.jsonl")
+        write_json(folder / "config.json", {**to_jsonable(config), "model": to_jsonable(model_config), **init.as_json(), **extra})
+    writer = MetricsWriter(folder / "metrics.jsonl")
     background = torch.tensor(config.background, dtype=torch.float32, device=device)
     snapshots = None
     if config.snapshot_iters:  # rendered outside the timed steps: before, between (callback) and after the fit
-        snapshots = SnapshotWriter(scene, default_views(scene), config.snapshot_iters, out / SNAPSHOT_DIR, background,
+        snapshots = SnapshotWriter(scene, default_views(scene), config.snapshot_iters, folder / SNAPSHOT_DIR, background,
                                    chunk=config.fit.chunk_rays)
         if state is None:
             snapshots.start(model)
     try:
         result = fit(
             model, scene, config.fit, background=background, callbacks=[writer, *([snapshots] if snapshots else []), *callbacks],
-            state=state, should_checkpoint=lambda st: save_checkpoint(out / CHECKPOINT_NAME, model, st),
+            state=state, should_checkpoint=lambda st: save_checkpoint(folder / CHECKPOINT_NAME, model, st),
         )
     finally:
         writer.close()
-    summary = summarize(config, scene, model, result, init, out)
+    summary = summarize(config, scene, model, result, init, folder)
     if snapshots is not None:
         snapshots.finish(model, result.state.step)
-        summary["snapshots"] = snapshots.as_json()
-    write_outputs(out, summary, result, renders=config.renders)
+        summary = dataclasses.replace(summary, snapshots=snapshots.as_json())
+    summary = dataclasses.replace(summary, route=None if route is None else dict(route))
+    write_outputs(folder, summary, result, renders=config.renders)
+    if write_summary:
+        write_run_summary(folder, summary)
     return summary
 
 
@@ -314,49 +326,133 @@ def _optimizer_description(model, fit_config: FitConfig, frozen: Sequence[str]) 
     }
 
 
-def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo, out: Path) -> dict[str, Any]:
+@dataclass(frozen=True)
+class FitSummary:
+    """The final figures of a fit: ``summary.json``, written once at the end (keys in this order; the
+    last three only when set). Reports and tests read these keys: keep them stable."""
+
+    scene: str
+    """The scene as given."""
+    category: str | None
+    """The scene's category, if its files name one."""
+    backbone: str
+    """Backbone name."""
+    init: str
+    """``scratch``, ``category`` or ``meta``."""
+    init_path: str | None
+    """The initialisation folder (absolute), None for scratch."""
+    init_sha256: str | None
+    """SHA-256 of its weights file."""
+    init_source: dict[str, Any]
+    """The saved initialisation's training facts."""
+    freeze: int
+    """Leading layers kept frozen."""
+    frozen_layers: list[str]
+    """Their names."""
+    iters: int
+    """Iterations done."""
+    time_s: float
+    """Optimisation wall time (evaluation excluded)."""
+    eval_time_s: float
+    """Evaluation wall time."""
+    stop_reason: str | None
+    """Why the loop stopped."""
+    test_views: int
+    """Test views."""
+    holdout: str | None
+    """How the test views were chosen."""
+    normalization: dict[str, Any]
+    """What the loader applied to bring the scene into range."""
+    resolution: list[int]
+    """Height, width."""
+    test_psnr: float | None
+    """Final PSNR over the test views."""
+    test_ssim: float | None
+    """Final SSIM over the test views."""
+    test_lpips: float | None
+    """Not computed (see the note)."""
+    test_lpips_note: str
+    """Why LPIPS is missing."""
+    samples_per_ray: float | None
+    """Samples per ray of the final evaluation."""
+    train_samples_per_ray: float | None
+    """Mean samples per ray of the training steps."""
+    peak_rss_mb: float
+    """Peak resident memory of the process."""
+    device: str
+    """Torch device."""
+    optimizer: dict[str, Any]
+    """The optimiser, its groups' rates and schedule."""
+    n_parameters: int
+    """Parameters of the model."""
+    decisions: dict[str, Any]
+    """Decisions the loop took (e.g. view dependence)."""
+    guard_events: list[dict[str, Any]]
+    """The divergence guard's rollbacks."""
+    snapshots: dict[str, Any] | None = None
+    """The snapshot renders on disk (only when ``snapshot_iters`` is set)."""
+    route: dict[str, Any] | None = None
+    """The classifier's routing decision (``--init auto`` only)."""
+    comparison: dict[str, Any] | None = None
+    """The comparison with the baselines (``--compare`` only)."""
+
+    def as_json(self) -> dict[str, Any]:
+        out = {f.name: to_jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        for key in ("snapshots", "route", "comparison"):
+            if out[key] is None:
+                del out[key]
+        return out
+
+
+def write_run_summary(folder: Path, summary: FitSummary) -> None:
+    """Write ``summary.json`` (once per run)."""
+    write_summary(folder, summary)
+
+
+def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo, out: Path) -> FitSummary:
     """The figures of a finished fit (``summary.json``)."""
     records = read_metrics(out / "metrics.jsonl")
     final = result.final
     train_spr = [r["samples_per_ray"] for r in records]
     peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {
-        "scene": config.scene,
-        "category": scene.category,
-        "backbone": config.backbone,
-        "init": init.kind,
-        "init_path": None if init.path is None else str(init.path),
-        "init_sha256": init.sha256,
-        "init_source": init.meta,
-        "freeze": config.freeze,
-        "frozen_layers": list(init.frozen_layers),
-        "iters": result.state.step,
-        "time_s": round(result.state.time_s, 3),
-        "eval_time_s": round(result.state.eval_time_s, 3),
-        "stop_reason": result.state.stop_reason,
-        "test_views": len(scene.splits.get("test", ())),
-        "holdout": scene.holdout,
-        "normalization": scene.normalization.as_json(),
-        "resolution": [scene.height, scene.width],
-        "test_psnr": None if final is None else round(final.psnr, 4),
-        "test_ssim": None if final is None or final.ssim is None else round(final.ssim, 5),
-        "test_lpips": None,
-        "test_lpips_note": "not computed: LPIPS needs local weights (see nerfmeta.metrics.lpips_available)",
-        "samples_per_ray": None if final is None else round(final.samples_per_ray, 2),
-        "train_samples_per_ray": round(sum(train_spr) / len(train_spr), 2) if train_spr else None,
-        "peak_rss_mb": round(peak_kb / 1024 if sys.platform != "darwin" else peak_kb / 2**20, 1),
-        "device": config.device,
-        "optimizer": _optimizer_description(model, config.fit, init.frozen_parameters),
-        "n_parameters": sum(p.numel() for p in model.parameters()),
-        "decisions": result.state.decisions,
-        "guard_events": [e.as_json() for e in result.state.guard_events],
-    }
+    return FitSummary(
+        scene=config.scene,
+        category=scene.category,
+        backbone=config.backbone,
+        init=init.kind,
+        init_path=None if init.path is None else str(init.path),
+        init_sha256=init.sha256,
+        init_source=init.meta,
+        freeze=config.freeze,
+        frozen_layers=list(init.frozen_layers),
+        iters=result.state.step,
+        time_s=round(result.state.time_s, 3),
+        eval_time_s=round(result.state.eval_time_s, 3),
+        stop_reason=result.state.stop_reason,
+        test_views=len(scene.splits.get("test", ())),
+        holdout=scene.holdout,
+        normalization=scene.normalization.as_json(),
+        resolution=[scene.height, scene.width],
+        test_psnr=None if final is None else round(final.psnr, 4),
+        test_ssim=None if final is None or final.ssim is None else round(final.ssim, 5),
+        test_lpips=None,
+        test_lpips_note="not computed: this version of nerfmeta has no LPIPS network",
+        samples_per_ray=None if final is None else round(final.samples_per_ray, 2),
+        train_samples_per_ray=round(sum(train_spr) / len(train_spr), 2) if train_spr else None,
+        peak_rss_mb=round(peak_kb / 1024 if sys.platform != "darwin" else peak_kb / 2**20, 1),
+        device=config.device,
+        optimizer=_optimizer_description(model, config.fit, init.frozen_parameters),
+        n_parameters=sum(p.numel() for p in model.parameters()),
+        decisions=result.state.decisions,
+        guard_events=[e.as_json() for e in result.state.guard_events],
+    )
 
 
-def write_outputs(out: Path, summary: dict[str, Any], result: FitResult, *, renders: int = RENDERED_VIEWS) -> None:
+def write_outputs(out: Path, summary: FitSummary, result: FitResult, *, renders: int = RENDERED_VIEWS) -> None:
+    """The PSNR curves and the test renders (``summary.json`` is written by the caller, once)."""
     records = read_metrics(out / "metrics.jsonl")
-    name = f"{summary['backbone']} ({summary['init']})"
-    title = f"{Path(summary['scene']).name}: {summary['backbone']}, {summary['iters']} iters"
+    name = f"{summary.backbone} ({summary.init})"
+    title = f"{Path(summary.scene).name}: {summary.backbone}, {summary.iters} iters"
     plot_psnr_curves({name: records}, "iter", out / "psnr_vs_iter.png", title=title)
     plot_psnr_curves({name: records}, "time_s", out / "psnr_vs_time.png", title=title)
     if result.final is not None:
@@ -364,4 +460,3 @@ def write_outputs(out: Path, summary: dict[str, Any], result: FitResult, *, rend
             strip = image_strip([r.target.numpy(), r.rgb.numpy()])
             with atomic_path(out / "renders" / f"test_{r.view:03d}.png") as tmp:
                 iio.imwrite(tmp, strip, extension=".png")
-    write_json(out / "summary.json", summary)

@@ -170,6 +170,7 @@ def write_comparison(
     baseline: str = "scratch",
     name: str = "routed",
     update_summary: bool = True,
+    summary: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Compare the fit in ``run_dir`` with the fits in ``methods`` and write the report files.
 
@@ -182,6 +183,8 @@ def write_comparison(
         baseline: the name of the baseline fit (the target is its final test PSNR).
         name: the name of ``run_dir``'s fit.
         update_summary: also store the returned dict in ``run_dir/summary.json["comparison"]``.
+        summary: ``run_dir``'s summary when its ``summary.json`` is not written yet (the caller then
+            writes it, once, with the comparison: pass ``update_summary=False``).
 
     Returns:
         :func:`compare_logs`'s dict with ``method=name``, plus ``renders``: the render image
@@ -194,7 +197,8 @@ def write_comparison(
     out_dir = run_dir if out_dir is None else Path(out_dir)
     if name in methods:
         raise ConfigError(f"method name {name!r} is used twice; rename the main fit or the compared one")
-    logs = {name: load_fit_log(run_dir), **{k: load_fit_log(v) for k, v in methods.items()}}
+    main = load_fit_log(run_dir) if summary is None else FitLog(run_dir, dict(summary), read_metrics(run_dir / "metrics.jsonl"))
+    logs = {name: main, **{k: load_fit_log(v) for k, v in methods.items()}}
     result = compare_logs(logs, baseline=baseline, method=name, iters=iters)
     order = [baseline, *[k for k in logs if k != baseline]]
     curves = {k: logs[k].records for k in order}
