@@ -302,3 +302,13 @@ def test_lpips_rejects_weights_that_do_not_fit(random_alex_weights, tmp_path):
     (tmp_path / spec.linear_file).write_bytes(b"not a checkpoint")
     with pytest.raises(LpipsWeightsError, match="cannot read"):
         evaluate_images(torch.rand(1, 32, 32, 3), torch.rand(1, 32, 32, 3), tmp_path)
+
+
+def test_ssim_skip_reason_names_the_size_and_the_window() -> None:
+    from nerfmeta.metrics import ssim_skip_reason
+
+    assert ssim_skip_reason(11, 11) is None and ssim_skip_reason(32, 11) is None
+    assert "8x32 pixels, smaller than its 11x11 window" in ssim_skip_reason(32, 8)
+    assert ssim_skip_reason(8, 8, window=7) is None and ssim_skip_reason(6, 8, window=7) is not None
+    with pytest.raises(ValueError):  # the reason is exactly when ssim() would refuse
+        ssim(torch.rand(10, 12, 3), torch.rand(10, 12, 3))
