@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfmeta.data.arrays import npy_header
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -73,6 +74,9 @@ def _image_folder(path: Path, downscale: float) -> tuple[Path, float]:
 def load(path: Path, options: LoadOptions) -> Scene:
     """Read an LLFF scene folder (see the module docstring)."""
     file = path / FILE_NAME
+    declared = npy_header(file).shape  # checked before reading: a forged header cannot make us allocate
+    if len(declared) != 2 or declared[1] != 17 or declared[0] < 1:
+        raise SceneError(f"{file}: expected an (N, 17) array, got shape {declared}")
     try:
         data = np.load(file, allow_pickle=False)
     except (OSError, ValueError) as err:

@@ -8,12 +8,14 @@ lego), and every 8th view (0, 8, 16, ...) is held out as the test split.
 
 from __future__ import annotations
 
+import math
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from nerfmeta.data.arrays import ArrayHeader, npz_headers
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -24,6 +26,7 @@ from nerfmeta.data.common import (
     image_arrays_to_views,
     scale_intrinsics,
 )
+from nerfmeta.data.images import check_pixel_limit
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import SceneError
 
@@ -39,8 +42,28 @@ def detect(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() == ".npz"
 
 
+def check_declared_shapes(path: Path, headers: dict[str, ArrayHeader], max_pixels: int) -> None:
+    """Refuse missing arrays, wrong shapes and images over ``max_pixels`` from the headers alone."""
+    missing = [k for k in KEYS if k not in headers]
+    if missing:
+        raise SceneError(f"{path}: missing array(s) {', '.join(missing)} (needs {', '.join(KEYS)})")
+    images, poses, focal = (headers[k].shape for k in KEYS)
+    if len(images) != 4 or images[-1] not in (3, 4) or images[0] < 1:
+        raise SceneError(f"{path}: images must be (N, H, W, 3) with N >= 1, got shape {images}")
+    check_pixel_limit(f"{path}: images", images[1], images[2], max_pixels)
+    if poses != (images[0], 4, 4):
+        raise SceneError(f"{path}: poses must be (N, 4, 4) with N = {images[0]} images, got shape {poses}")
+    if math.prod(focal) != 1:
+        raise SceneError(f"{path}: focal must be a single number, got shape {focal}")
+
+
 def load(path: Path, options: LoadOptions) -> Scene:
-    """Read a tiny-NeRF ``.npz`` scene (see the module docstring)."""
+    """Read a tiny-NeRF ``.npz`` scene (see the module docstring).
+
+    The declared shapes are checked (from the ``.npy`` headers, see :mod:`nerfmeta.data.arrays`)
+    before any array is read.
+    """
+    check_declared_shapes(path, npz_headers(path), options.max_pixels)
     try:
         with np.load(path, allow_pickle=False) as archive:
             missing = [k for k in KEYS if k not in archive.files]
