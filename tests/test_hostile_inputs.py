@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 from numpy.lib import format as npy_format
+from PIL import Image
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
@@ -123,3 +124,85 @@ def test_llff_poses_bounds_header_is_checked_before_reading(tmp_path: Path, caps
     line = one_line_error(capsys, main(["inspect", str(folder)]), "inspect")
     assert "poses_bounds.npy: expected an (N, 17) array, got shape (2, 5)" in line
 
+
+
+# --- extreme numbers in scene files -----------------------------------------------------------------
+
+
+def edited_tiny_scene(folder: Path, edit: Any = None, frame_edit: Any = None, to_nerfstudio: bool = False) -> Path:
+    """The 8 px tiny scene with its JSON documents edited in place (``edit(doc)``, ``frame_edit(frame)``);
+    ``to_nerfstudio`` rewrites the training split as a nerfstudio ``transforms.json``."""
+    scene = write_tiny_scene(folder, n_train=4, n_test=1, size=8)
+    for file in sorted(scene.glob("transforms_*.json")):
+        doc = json.loads(file.read_text())
+        if edit is not None:
+            edit(doc)
+        for frame in doc["frames"]:
+            if frame_edit is not None:
+                frame_edit(frame)
+        if to_nerfstudio:
+            file.unlink()
+            if file.name == "transforms_train.json":
+                (scene / "transforms.json").write_text(json.dumps(doc))
+        else:
+            file.write_text(json.dumps(doc))
+    return scene
+
+
+def shift_x(amount: float) -> Any:
+    def edit(frame: dict[str, Any]) -> None:
+        frame["transform_matrix"][0][3] += amount
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("edit", "frame_edit", "to_nerfstudio", "message"),
+    [
+        (lambda d: d.update(far=1e300), None, False, "far 1e+300 is outside"),
+        (lambda d: d.update(near=1e-301, far=1e-300), None, False, "far 1e-300 is outside"),
+        (lambda d: d.update(near=1e-7, far=6.0), None, False, "far / near is 6e+07"),
+        (lambda d: d.update(near=1e-7, far=1e-6), None, False, "cameras are spread over"),
+        (lambda d: d.update(camera_angle_x=1e-300), None, False, "focal fx 8e+300 px is not between"),
+        (lambda d: d.update(aabb=[[-1e300] * 3, [1e300] * 3]), None, False, "aabb of size 2e+300 is out of proportion"),
+        (lambda d: d.update(aabb=[[0.0] * 3, [1e-300] * 3]), None, False, "aabb of size 1e-300 is out of proportion"),
+        (lambda d: d.update(aabb=[[100.0] * 3, [101.0] * 3]), None, False, "aabb is 1"),
+        (None, shift_x(1e300), False, "a camera stands 1e+300 from the origin"),
+        (lambda d: d.pop("aabb"), shift_x(1e30), False, "a camera stands 1e+30 from the origin"),
+        (lambda d: d.update(cx=1e30), None, True, "principal point cx 1e+30 px"),
+        (lambda d: d.update(fl_x=1e-300), None, True, "focal fx 1e-300 px"),
+        (lambda d: d.update(fl_y=1e300), None, True, "focal fy 1e+300 px"),
+    ],
+)
+def test_extreme_numbers_are_refused_naming_the_file_and_value(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: Any, frame_edit: Any, to_nerfstudio: bool, message: str
+) -> None:
+    scene = edited_tiny_scene(tmp_path / "s", edit, frame_edit, to_nerfstudio)
+    line = one_line_error(capsys, main(["inspect", str(scene)]), "inspect")
+    assert ("transforms.json" if to_nerfstudio else "transforms_train.json") in line and message in line
+
+
+def test_extreme_npz_focal_and_llff_depths_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    members = {**tiny_npz_members(), "focal": npy_bytes((), "<f8", np.float64(1e300).tobytes())}
+    line = one_line_error(capsys, main(["inspect", str(write_npz(tmp_path / "f.npz", members))]), "inspect")
+    assert "f.npz: view 0: focal fx 1e+300 px" in line
+    folder = tmp_path / "llff"
+    (folder / "images").mkdir(parents=True)
+    rows = np.zeros((2, 17))
+    for k in range(2):
+        mat = np.zeros((3, 5))
+        mat[:, :3] = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]  # LLFF [down, right, back] of an identity camera
+        mat[:, 3] = [k * 0.1, 0.0, 0.0]
+        mat[:, 4] = [4, 4, 5.0]
+        rows[k, :15] = mat.reshape(-1)
+        rows[k, 15:] = [1e-300, 2e-300]
+        Image.new("RGB", (4, 4)).save(folder / "images" / f"{k}.png")
+    np.save(folder / "poses_bounds.npy", rows)
+    line = one_line_error(capsys, main(["inspect", str(folder)]), "inspect")
+    assert "poses_bounds.npy: far 2.2e-300 is outside" in line
+
+
+def test_scenes_in_range_still_load(tmp_path: Path) -> None:
+    assert load_scene(edited_tiny_scene(tmp_path / "a", lambda d: d.update(near=0.0, far=6.0))).far == 6.0
+    scene = load_scene(edited_tiny_scene(tmp_path / "b", lambda d: d.update(cx=7.9, fl_x=0.5), to_nerfstudio=True))
+    assert scene.intrinsics[0, 2] == pytest.approx(7.9)

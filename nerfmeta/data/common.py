@@ -28,6 +28,7 @@ from nerfmeta.data.images import (
     to_float_images,
 )
 from nerfmeta.data.normalize import normalization_for
+from nerfmeta.data.ranges import check_depth_range, check_geometry, check_intrinsics
 from nerfmeta.data.scene import Normalization, Scene
 from nerfmeta.errors import ConfigError, SceneError
 
@@ -326,6 +327,7 @@ def build_scene(
     aabb: torch.Tensor | None = None,
     category: str | None = None,
     image_names: Sequence[str] = (),
+    where: str | None = None,
 ) -> Scene:
     """Assemble a :class:`Scene`, computing bounds from the camera frusta unless ``aabb`` is given.
 
@@ -333,13 +335,20 @@ def build_scene(
     off, the scene is then moved into range by :func:`~nerfmeta.data.normalize.normalization_for`
     (the identity for scenes already in range) and the transform is kept in ``Scene.normalization``.
 
+    Numbers that are finite but out of proportion (:mod:`nerfmeta.data.ranges`) are refused first.
+
     Args:
         intrinsics: (n, 4) ``(fx, fy, cx, cy)`` for the images as read (after downscaling).
+        where: the file to name in errors (default ``source``).
     """
     poses_t = torch.as_tensor(np.asarray(poses), dtype=torch.float64)
     n = views.images.shape[0]
     if poses_t.shape != (n, 4, 4) or intrinsics.shape != (n, 4):
         raise ValueError(f"{n} views but poses {tuple(poses_t.shape)}, intrinsics {tuple(intrinsics.shape)}")
+    where = str(source) if where is None else where
+    check_depth_range(near, far, where=where)
+    check_intrinsics(intrinsics, views.height, views.width, where=where)
+    check_geometry(poses_t, far, aabb, where=where)
     if not splits.get("train"):
         raise SceneError(f"{source}: no training views (a scene needs at least 2 views)")
     if aabb is None:

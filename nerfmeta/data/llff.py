@@ -129,4 +129,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         options=options,
         downscale=options.downscale,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
+        where=str(file),
     )

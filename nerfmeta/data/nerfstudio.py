@@ -191,4 +191,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         aabb=aabb,
         category=category,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
+        where=str(file),
     )

@@ -98,4 +98,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         options=options,
         downscale=options.downscale,
         image_names=[f"{path.name}[{k}]" for k in range(len(checked))],
+        where=str(path),
     )
