@@ -56,6 +56,8 @@ class SceneSummary:
     """Ray distance where sampling starts."""
     far: float
     """Ray distance where sampling ends."""
+    near_far_source: str
+    """Where ``near``/``far`` came from: the file, the format's default, or derived from the cameras."""
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
     """Axis-aligned box ``(min_xyz, max_xyz)`` holding the content."""
     category: str | None
@@ -90,6 +92,7 @@ def summarize_scene(scene: Scene) -> SceneSummary:
         intrinsics_vary=bool((intr - intr[:1]).abs().max() > 1e-6),
         near=float(scene.near),
         far=float(scene.far),
+        near_far_source=scene.near_far_source,
         bounds=(tuple(float(v) for v in bounds[0]), tuple(float(v) for v in bounds[1])),  # type: ignore[arg-type]
         category=scene.category,
         background=scene.background,
@@ -114,7 +117,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("resolution", f"{s.width} x {s.height} (downscale {s.downscale:g})"),
         ("focal", f"fx {s.focal[0]:.2f}, fy {s.focal[1]:.2f} px{vary}"),
         ("principal point", f"cx {s.principal_point[0]:.2f}, cy {s.principal_point[1]:.2f} px{vary}"),
-        ("near / far", f"{s.near:.4g} / {s.far:.4g}"),
+        ("near / far", f"{s.near:.4g} / {s.far:.4g} ({s.near_far_source})"),
         ("bounds", f"min {_vec(lo)}  max {_vec(hi)}  size {size}"),
         ("category", s.category or "-"),
         ("background", bg),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from nerfmeta.render.rays import camera_rays
@@ -43,3 +44,31 @@ def frustum_bounds(
     origins, dirs = camera_rays(poses.unsqueeze(1), intrinsics.to(poses.dtype).unsqueeze(1), pixels)
     points = torch.cat([origins + near * dirs, origins + far * dirs], dim=1).reshape(-1, 3)
     return torch.stack([points.amin(dim=0), points.amax(dim=0)])
+
+
+def near_far_from_cameras(poses: np.ndarray) -> tuple[float, float] | None:
+    """Guess ``(near, far)`` from inward-looking cameras, or None when they share no focus.
+
+    The centre of interest ``c`` minimises the summed squared distance to the cameras' optical
+    axes. With ``d_i = |o_i - c|``: ``near = 0.5 * min(d)``, ``far = 1.5 * max(d)``. Returns None
+    when the axes are nearly parallel or ``c`` lies behind the cameras.
+
+    Args:
+        poses: (n, 4, 4) camera-to-world (OpenGL: the camera looks along -z).
+    """
+    origins = poses[:, :3, 3]
+    forward = -poses[:, :3, 2]
+    forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
+    proj = np.eye(3)[None] - forward[:, :, None] * forward[:, None, :]  # (n, 3, 3)
+    a = proj.sum(axis=0) / len(poses)
+    b = (proj @ origins[:, :, None]).sum(axis=0)[:, 0] / len(poses)
+    if np.linalg.eigvalsh(a).min() < 1e-2:
+        return None
+    centre = np.linalg.solve(a, b)
+    ahead = ((centre[None] - origins) * forward).sum(axis=-1)
+    if np.median(ahead) <= 0:
+        return None
+    dist = np.linalg.norm(origins - centre[None], axis=-1)
+    if dist.min() <= 0:
+        return None
+    return 0.5 * float(dist.min()), 1.5 * float(dist.max())

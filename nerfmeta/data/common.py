@@ -328,6 +328,7 @@ def build_scene(
     category: str | None = None,
     image_names: Sequence[str] = (),
     where: str | None = None,
+    near_far_source: str = "from file",
 ) -> Scene:
     """Assemble a :class:`Scene`, computing bounds from the camera frusta unless ``aabb`` is given.
 
@@ -340,6 +341,7 @@ def build_scene(
     Args:
         intrinsics: (n, 4) ``(fx, fy, cx, cy)`` for the images as read (after downscaling).
         where: the file to name in errors (default ``source``).
+        near_far_source: where ``near``/``far`` came from (see :class:`Scene`).
     """
     poses_t = torch.as_tensor(np.asarray(poses), dtype=torch.float64)
     n = views.images.shape[0]
@@ -377,4 +379,5 @@ def build_scene(
         image_names=tuple(image_names),
         downscale=float(downscale),
         normalization=norm,
+        near_far_source=near_far_source,
     )

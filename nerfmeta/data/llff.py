@@ -130,4 +130,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         downscale=options.downscale,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
         where=str(file),
+        near_far_source="from file (0.9 x nearest and 1.1 x farthest depth bound)",
     )

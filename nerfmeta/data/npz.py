@@ -99,4 +99,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         downscale=options.downscale,
         image_names=[f"{path.name}[{k}]" for k in range(len(checked))],
         where=str(path),
+        near_far_source="tiny NeRF default (the format has none)",
     )
