@@ -120,6 +120,13 @@ def test_missing_classifier_option_says_what_to_pass():
         (lambda f: _truncate(f / WEIGHTS_FILE), "SHA-256"),
         (lambda f: _edit(f, lambda d: d["weights"].update(sha256="0" * 64)), "SHA-256"),
         (lambda f: _edit(f, lambda d: d.update(categories=["chair", "mug"])), "do not fit a resnet18 with 2 categories"),
+        (lambda f: _edit(f, lambda d: d.update(categories=["chair", "chair", "mug"])), "lists a name twice"),
+        (lambda f: _edit(f, lambda d: d["input"].update(size=10**6)), "must be an integer from 8 to 1024"),
+        (lambda f: _edit(f, lambda d: d["input"].update(size=True)), "must be an integer from 8 to 1024"),
+        (lambda f: _edit(f, lambda d: d["input"].update(background=[0.0, 1e30, 0.0])), "three values in \\[0, 1\\]"),
+        (lambda f: _edit(f, lambda d: d["unknown"].update(thresholds={"msp": float("nan")})), "must be finite"),
+        (lambda f: _edit(f, lambda d: d["unknown"].update(thresholds={"msp": "abc"})), "missing or malformed"),
+        (lambda f: _edit(f, lambda d: d["weights"].update(sha256=7)), "weights.sha256 must be a string"),
     ],
 )
 def test_damaged_folder_is_a_one_line_error(saved: Path, damage, message):

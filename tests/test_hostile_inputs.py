@@ -4,8 +4,10 @@ one line on stderr with exit code 2, never a traceback after work was done or a 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import json
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -21,10 +23,13 @@ from nerfmeta.data import load_scene
 from nerfmeta.data.arrays import npz_headers
 from nerfmeta.data.blender import default_near_far
 from nerfmeta.data.synthetic import write_tiny_scene
-from nerfmeta.errors import SceneError
+from nerfmeta.errors import ConfigError, SceneError
+from nerfmeta.fields.registry import build_model, config_from_dict
+from nerfmeta.init import load_init, save_init
 from nerfmeta.fit.run import RunConfig, run_fit
 from nerfmeta.render.cameras import fibonacci_directions, look_at
 from nerfmeta.stress import MAX_PSNR_GAP, QUICK, transform_blender_scene
+from nerfmeta.zoo import ZOO_FORMAT, load_zoo
 
 
 def one_line_error(capsys: pytest.CaptureFixture[str], code: int, command: str) -> str:
@@ -260,3 +265,99 @@ def test_scenes_without_near_far_fit_alike_at_every_scale(tmp_path: Path) -> Non
         psnr[name] = run_fit(config, tmp_path / f"run_{name}")["test_psnr"]
     assert psnr["unit"] > 15.0, psnr
     assert abs(psnr["milli"] - psnr["unit"]) <= MAX_PSNR_GAP and abs(psnr["kilo"] - psnr["unit"]) <= MAX_PSNR_GAP, psnr
+
+
+# --- manifests: zoo and init.json -------------------------------------------------------------------------
+
+
+def fake_zoo(root: Path, fit: dict[str, Any] | None = None, **entry: Any) -> Path:
+    """A zoo folder with one 'meta' entry listing ``meta/init.json`` (hash right); ``entry`` overrides its fields."""
+    (root / "meta").mkdir(parents=True, exist_ok=True)
+    (root / "meta" / "init.json").write_text("{}")
+    raw = {"name": "meta", "kind": "meta", "path": "meta", "files": {"init.json": hashlib.sha256(b"{}").hexdigest()},
+           "bytes": 2, **entry}
+    (root / "manifest.json").write_text(json.dumps({"format": ZOO_FORMAT, "fit": fit or {"backbone": "grid"}, "entries": [raw]}))
+    return root
+
+
+def test_fake_zoo_loads(tmp_path: Path) -> None:
+    zoo = load_zoo(fake_zoo(tmp_path / "zoo"))
+    assert zoo.meta is not None and zoo.meta.path == (tmp_path / "zoo" / "meta").resolve() and zoo.backbone == "grid"
+
+
+@pytest.mark.parametrize(
+    ("fit", "message"),
+    [
+        ({"backbone": "grid", "batch_rays": "abc"}, "fit.batch_rays must be an integer, got 'abc'"),
+        ({"backbone": "grid", "iters": 1e12}, "fit.iters must be an integer, got 1000000000000.0"),
+        ({"backbone": "grid", "iters": 0}, "fit.iters must be between 1 and 10000000, got 0"),
+        ({"backbone": "grid", "freeze": True}, "fit.freeze must be an integer, got True"),
+        ({"backbone": 7}, "fit.backbone must be a non-empty string, got 7"),
+        ({"backbone": "resnet"}, "fit.backbone is 'resnet', expected one of"),
+        ({"backbone": "grid", "model": "x"}, "fit.model must be a JSON object, got str"),
+        ({"backbone": "grid", "model": {"no_such_field": 1}}, "fit.model: grid config has unknown keys ['no_such_field']"),
+    ],
+)
+def test_untyped_zoo_fit_settings_are_one_line_errors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], fit: dict[str, Any], message: str
+) -> None:
+    zoo = fake_zoo(tmp_path / "zoo", fit)
+    scene = write_tiny_scene(tmp_path / "s", n_train=2, n_test=1, size=8)
+    line = one_line_error(capsys, main(["fit", str(scene), "--out", str(tmp_path / "run"), "--zoo", str(zoo), "--iters", "2"]), "fit")
+    assert "manifest.json" in line and message in line
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        ({"path": "../outside"}, "path '../outside' leads out of"),
+        ({"path": "/etc"}, "path '/etc' is absolute"),
+        ({"path": "link"}, "path 'link' leads out of"),
+        ({"files": {"../../manifest.json": "0" * 64}}, "file: path '../../manifest.json' leads out of"),
+        ({"files": {"/etc/passwd": "0" * 64}}, "path '/etc/passwd' is absolute"),
+        ({"files": ["init.json"]}, "files must be a JSON object, got list"),
+        ({"kind": "other"}, "kind is 'other', expected one of classifier, category, meta"),
+        ({"kind": "category"}, "category must be a non-empty string, got None"),
+        ({"name": 3}, "entries[0].name must be a non-empty string, got 3"),
+        ({"config": []}, "config must be a JSON object, got list"),
+    ],
+)
+def test_zoo_entries_are_typed_and_stay_inside_the_zoo(tmp_path: Path, entry: dict[str, Any], message: str) -> None:
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "init.json").write_text("{}")
+    root = fake_zoo(tmp_path / "zoo", **entry)
+    (root / "link").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(ConfigError, match=re.escape(message)) as err:
+        load_zoo(root, verify="files" not in entry)
+    assert "\n" not in str(err.value)
+
+
+@pytest.fixture
+def saved_init(tmp_path: Path) -> Path:
+    model = build_model("nerf", config_from_dict("nerf", {"depth": 2, "width": 8, "skips": [], "n_samples": 4, "pos_freqs": 2}),
+                        torch.tensor([[-1.0] * 3, [1.0] * 3]), seed=0)
+    return save_init(tmp_path / "init", model, "meta", {"steps": 1})
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d.pop("backbone"), "backbone must be a non-empty string, got None"),
+        (lambda d: d.update(backbone="resnet"), "backbone is 'resnet', expected one of"),
+        (lambda d: d.update(kind=5), "kind must be a non-empty string, got 5"),
+        (lambda d: d.update(model_config="abc"), "model_config must be a JSON object, got str"),
+        (lambda d: d.update(model_config={"width": "abc"}), "model_config is not a valid nerf configuration"),
+        (lambda d: d.update(structure=[1, 2]), "structure must be a JSON object, got list"),
+        (lambda d: d.update(meta="x"), "meta must be a JSON object, got str"),
+        (lambda d: d["model_config"].update(width=16), "weights do not fit a nerf model"),
+    ],
+)
+def test_init_json_fields_are_typed(saved_init: Path, edit: Any, message: str) -> None:
+    doc = json.loads((saved_init / "init.json").read_text())
+    edit(doc)
+    (saved_init / "init.json").write_text(json.dumps(doc))
+    with pytest.raises(ConfigError, match=re.escape(message)) as err:
+        load_init(saved_init).build()
+    assert "\n" not in str(err.value)
