@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -190,3 +191,48 @@ def test_half_precision_weights_halve_the_file_and_load_as_float32(tmp_path: Pat
     assert got.category == expected.category
     for c in CATS:
         assert got.probabilities[c] == pytest.approx(expected.probabilities[c], abs=2e-3)
+
+
+# --- --json-out paths that cannot be written: one line naming the path, exit 2, nothing written --------
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda t: (t / "folder").mkdir() or t / "folder", "is a folder; give a file path"),
+        (lambda t: str(t / "new_folder") + "/", "names a folder; give a file path"),
+        (lambda t: (t / "afile").write_text("x") and t / "afile" / "answer.json", "is a file, not a folder"),
+        (lambda t: (t / "dangling").symlink_to(t / "nowhere") or t / "dangling", "is a symbolic link to a missing target"),
+        (lambda t: os.mkfifo(t / "pipe") or t / "pipe", "exists and is not a regular file"),  # never a real device here
+    ],
+)
+def test_json_out_that_cannot_be_written_is_refused_before_any_work(saved: Path, tmp_path: Path, capsys, make, message):
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+    target = make(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(target)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "--json-out" in lines[0] and message in lines[0] and "Traceback" not in captured.err, captured.err
+    assert captured.out == "" and sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_json_out_on_a_full_disk_is_one_line_and_leaves_nothing(saved: Path, tmp_path: Path, capsys, monkeypatch):
+    import errno
+
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+
+    def full(self: Path, data: bytes) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(tmp_path / "answer.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "answer.json: cannot write (No space left on device)" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clf", "scene"]
