@@ -21,8 +21,8 @@ from PIL import Image
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
 from nerfmeta.data.arrays import npz_headers
-from nerfmeta.data.blender import default_near_far
-from nerfmeta.data.synthetic import write_tiny_scene
+from nerfmeta.data.bounds import default_near_far
+from nerfmeta.data.synthetic import tiny_cameras, write_tiny_scene
 from nerfmeta.errors import ConfigError, SceneError
 from nerfmeta.fields.registry import build_model, config_from_dict
 from nerfmeta.init import load_init, save_init
@@ -361,3 +361,18 @@ def test_init_json_fields_are_typed(saved_init: Path, edit: Any, message: str) -
     with pytest.raises(ConfigError, match=re.escape(message)) as err:
         load_init(saved_init).build()
     assert "\n" not in str(err.value)
+
+
+def test_npz_scene_at_another_scale_gets_near_far_from_its_cameras(tmp_path: Path) -> None:
+    poses, intrinsics = tiny_cameras(8, 0.5, 8)
+    for scale, expected in ((1.0, (2.0, 6.0)), (1e-3, None)):
+        moved = poses.clone()
+        moved[:, :3, 3] *= scale
+        path = tmp_path / f"scene_{scale}.npz"
+        np.savez(path, images=np.zeros((8, 8, 8, 3), np.uint8), poses=moved.numpy(), focal=float(intrinsics[0]))
+        scene = load_scene(path, normalize=False)
+        if expected is not None:
+            assert (scene.near, scene.far) == expected and "NeRF-synthetic default" in scene.near_far_source
+        else:
+            assert scene.near == pytest.approx(0.002, rel=1e-3) and scene.far == pytest.approx(0.006, rel=1e-3)
+            assert scene.near_far_source.startswith("derived from the cameras")

@@ -9,14 +9,14 @@ camera-to-world ``transform_matrix`` in the OpenGL convention. Intrinsics are
 nerfmeta's optional top-level keys (read from ``transforms_train.json``): ``near``, ``far`` (ray
 distances), ``category`` and ``aabb``.
 
-Without ``near``/``far`` in the file (:func:`default_near_far`): the cameras give them as for
-nerfstudio scenes (:func:`~nerfmeta.data.bounds.near_far_from_cameras`: with ``d`` the camera
-distances to the point their optical axes pass closest to, ``0.5 * min(d)`` and ``1.5 * max(d)``).
-When those lie within a factor :data:`SYNTHETIC_SCALE_FACTOR` of NeRF-synthetic's 2 and 6 (cameras
-at its scale, as in lego: radius 4.03 gives 2.02 / 6.05), the scene keeps exactly 2 and 6, so
-NeRF-synthetic scenes load as they always did; a scene at another scale (cameras 0.004 from a
-0.002-unit object, or 4000 units away) gets the derived values, and the load-time normalisation
-then follows from them. Cameras that share no point of focus keep 2 and 6.
+Without ``near``/``far`` in the file (:func:`~nerfmeta.data.bounds.default_near_far`), the
+cameras give them as for nerfstudio scenes: with ``d`` the camera distances to the point their
+optical axes pass closest to, ``0.5 * min(d)`` and ``1.5 * max(d)``. When those lie within a
+factor 1.5 of NeRF-synthetic's 2 and 6 (cameras at its scale, as in lego: radius 4.03 gives
+2.02 / 6.05), the scene keeps exactly 2 and 6, so NeRF-synthetic scenes load as they always did;
+a scene at another scale (cameras 0.004 from a 0.002-unit object, or 4000 units away) gets the
+derived values, and the load-time normalisation then follows from them. Cameras that share no
+point of focus keep 2 and 6.
 
 Splits: the files' own; when there is no ``transforms_test.json``, every 8th training view
 (0, 8, 16, ...) is held out as the test split.
@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nerfmeta.data.bounds import near_far_from_cameras
+from nerfmeta.data.bounds import FAR_SYNTHETIC, NEAR_SYNTHETIC, default_near_far
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -52,10 +52,8 @@ from nerfmeta.errors import SceneError
 
 NAME = "blender"
 EXPECTS = "transforms_train.json (+ transforms_val.json, transforms_test.json) with camera_angle_x and frames"
-DEFAULT_NEAR = 2.0
-DEFAULT_FAR = 6.0
-SYNTHETIC_SCALE_FACTOR = 1.5
-"""Derived near/far within this factor of the defaults (each) keep the defaults exactly."""
+DEFAULT_NEAR = NEAR_SYNTHETIC
+DEFAULT_FAR = FAR_SYNTHETIC
 
 
 def detect(path: Path) -> bool:
@@ -74,23 +72,6 @@ def field_of_view(doc: dict[str, Any], key: str, *, where: str) -> float:
 def focal_from_angle(angle: float, size: int) -> float:
     """Focal length in pixels of a field of view ``angle`` (radians) across ``size`` pixels."""
     return 0.5 * size / math.tan(0.5 * angle)
-
-
-def default_near_far(poses: np.ndarray) -> tuple[float, float, str]:
-    """``(near, far, source)`` for a file without them (rule in the module docstring).
-
-    Args:
-        poses: (n, 4, 4) camera-to-world (OpenGL).
-    """
-    guess = near_far_from_cameras(poses)
-    if guess is None:
-        return DEFAULT_NEAR, DEFAULT_FAR, "NeRF-synthetic default (not in the file; the cameras share no point of focus)"
-    near, far = guess
-    k = SYNTHETIC_SCALE_FACTOR
-    if 1 / k <= near / DEFAULT_NEAR <= k and 1 / k <= far / DEFAULT_FAR <= k:
-        return DEFAULT_NEAR, DEFAULT_FAR, "NeRF-synthetic default (not in the file; the cameras are at its scale)"
-    return near, far, ("derived from the cameras (not in the file): 0.5 x nearest and 1.5 x farthest camera distance "
-                       "to the point they look at")
 
 
 def load(path: Path, options: LoadOptions) -> Scene:

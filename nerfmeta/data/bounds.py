@@ -7,6 +7,12 @@ import torch
 
 from nerfmeta.render.rays import camera_rays
 
+NEAR_SYNTHETIC = 2.0
+FAR_SYNTHETIC = 6.0
+"""NeRF-synthetic's near/far (cameras at radius 4.03 around a unit-size object)."""
+SYNTHETIC_SCALE_FACTOR = 1.5
+"""Derived near/far within this factor of NeRF-synthetic's (each) keep its values exactly."""
+
 
 def frustum_bounds(
     poses: torch.Tensor,
@@ -72,3 +78,24 @@ def near_far_from_cameras(poses: np.ndarray) -> tuple[float, float] | None:
     if dist.min() <= 0:
         return None
     return 0.5 * float(dist.min()), 1.5 * float(dist.max())
+
+
+def default_near_far(poses: np.ndarray) -> tuple[float, float, str]:
+    """``(near, far, source)`` for a Blender or tiny-NeRF file without them.
+
+    The rule of :func:`near_far_from_cameras`, except that values within a factor
+    :data:`SYNTHETIC_SCALE_FACTOR` of NeRF-synthetic's (``NEAR_SYNTHETIC``, ``FAR_SYNTHETIC``) give
+    exactly those, so scenes at its scale (lego: 2.02 / 6.05 derived) load as they always did.
+
+    Args:
+        poses: (n, 4, 4) camera-to-world (OpenGL).
+    """
+    guess = near_far_from_cameras(poses)
+    if guess is None:
+        return NEAR_SYNTHETIC, FAR_SYNTHETIC, "NeRF-synthetic default (not in the file; the cameras share no point of focus)"
+    near, far = guess
+    k = SYNTHETIC_SCALE_FACTOR
+    if 1 / k <= near / NEAR_SYNTHETIC <= k and 1 / k <= far / FAR_SYNTHETIC <= k:
+        return NEAR_SYNTHETIC, FAR_SYNTHETIC, "NeRF-synthetic default (not in the file; the cameras are at its scale)"
+    return near, far, ("derived from the cameras (not in the file): 0.5 x nearest and 1.5 x farthest camera distance "
+                       "to the point they look at")

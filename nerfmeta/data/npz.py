@@ -2,8 +2,9 @@
 
 Arrays: ``images`` (N, H, W, 3) uint8 or float in [0, 1] (4 channels are composited as RGBA),
 ``poses`` (N, 4, 4) OpenGL camera-to-world, ``focal`` (scalar, pixels). Intrinsics are
-``(focal, focal, W/2, H/2)``, ``near``/``far`` are 2 and 6 (the tiny scene is the NeRF-synthetic
-lego), and every 8th view (0, 8, 16, ...) is held out as the test split.
+``(focal, focal, W/2, H/2)``, ``near``/``far`` come from the cameras as for a Blender file without
+them (:func:`~nerfmeta.data.bounds.default_near_far`: 2 and 6 for the tiny scene, which is the
+NeRF-synthetic lego), and every 8th view (0, 8, 16, ...) is held out as the test split.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 
 from nerfmeta.data.arrays import ArrayHeader, npz_headers
+from nerfmeta.data.bounds import default_near_far
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -32,8 +34,6 @@ from nerfmeta.errors import SceneError
 
 NAME = "npz"
 EXPECTS = "a .npz file with images (N, H, W, 3), poses (N, 4, 4) and focal"
-NEAR = 2.0
-FAR = 6.0
 KEYS = ("images", "poses", "focal")
 
 
@@ -81,6 +81,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         raise SceneError(f"{path}: focal must be a single number, got shape {focal.shape}")
     f = finite_number(focal.reshape(()).item(), where=f"{path}: focal", positive=True)
 
+    near, far, near_far_source = default_near_far(checked)
     views = image_arrays_to_views(images, options, name=str(path))
     w0, h0 = views.source_width, views.source_height
     intrinsics = torch.tensor([[f, f, w0 / 2, h0 / 2]] * len(checked), dtype=torch.float64)
@@ -89,8 +90,8 @@ def load(path: Path, options: LoadOptions) -> Scene:
         views=views,
         poses=checked,
         intrinsics=intrinsics,
-        near=NEAR,
-        far=FAR,
+        near=near,
+        far=far,
         splits=every_nth_splits(len(checked)),
         holdout=HOLDOUT_EVERY_TEXT,
         source=path,
@@ -99,5 +100,5 @@ def load(path: Path, options: LoadOptions) -> Scene:
         downscale=options.downscale,
         image_names=[f"{path.name}[{k}]" for k in range(len(checked))],
         where=str(path),
-        near_far_source="tiny NeRF default (the format has none)",
+        near_far_source=near_far_source,
     )
