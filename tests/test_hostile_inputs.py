@@ -376,3 +376,17 @@ def test_npz_scene_at_another_scale_gets_near_far_from_its_cameras(tmp_path: Pat
         else:
             assert scene.near == pytest.approx(0.002, rel=1e-3) and scene.far == pytest.approx(0.006, rel=1e-3)
             assert scene.near_far_source.startswith("derived from the cameras")
+
+
+# --- scene JSON that is too big or too deep -----------------------------------------------------------------
+
+
+def test_scene_json_too_large_or_too_deep_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    scene = write_tiny_scene(tmp_path / "s", n_train=2, n_test=1, size=8)
+    (scene / "transforms_train.json").write_text("[" * 200_000 + "]" * 200_000)
+    line = one_line_error(capsys, main(["inspect", str(scene)]), "inspect")
+    assert "transforms_train.json: JSON nested too deeply" in line
+    with open(scene / "transforms_train.json", "wb") as f:
+        f.truncate(300 << 20)  # sparse: no disk used
+    line = one_line_error(capsys, main(["inspect", str(scene)]), "inspect")
+    assert "transforms_train.json: 300 MiB is too large for a scene file" in line

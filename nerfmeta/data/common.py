@@ -65,16 +65,26 @@ class LoadOptions:
 # --- files -------------------------------------------------------------------------------------
 
 
+MAX_JSON_BYTES = 256 << 20
+"""Largest scene JSON file read (a transforms.json of 100k frames is about 50 MB)."""
+
+
 def read_json(path: Path) -> dict[str, Any]:
-    """A JSON object from ``path``; SceneError when missing, unreadable, invalid or not an object."""
+    """A JSON object from ``path``; SceneError when missing, unreadable, over :data:`MAX_JSON_BYTES`,
+    invalid, nested too deeply for the parser, or not an object."""
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
     try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise SceneError(f"{path}: {size / 2**20:.0f} MiB is too large for a scene file (limit {MAX_JSON_BYTES >> 20} MiB)")
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
         raise SceneError(f"{path}: cannot read file ({err})") from err
     except json.JSONDecodeError as err:
         raise SceneError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from err
+    except RecursionError:
+        raise SceneError(f"{path}: JSON nested too deeply to be a scene file") from None
     if not isinstance(doc, dict):
         raise SceneError(f"{path}: expected a JSON object at the top level, got {type(doc).__name__}")
     return doc
