@@ -45,14 +45,24 @@ CONVERTED_MODES = {"1": "L", "P": "RGB", "PA": "RGBA", "La": "LA", "RGBa": "RGBA
 
 
 @contextmanager
+def _pillow_warnings_logged(path: Path) -> Iterator[None]:
+    """Pillow's warnings about a damaged file (corrupt EXIF, ...) logged at INFO instead of printed;
+    its decompression-bomb warning dropped (nerfmeta applies its own pixel limit before decoding)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        yield
+    for w in caught:
+        log.info("%s: %s", path, w.message)
+
+
+@contextmanager
 def _open(path: Path) -> Iterator[Image.Image]:
     """The image at ``path`` opened lazily (header only); one-line SceneError for anything unreadable."""
     if not path.is_file():
         raise SceneError(f"{path}: image file not found")
     try:
-        with warnings.catch_warnings():
-            # nerfmeta applies its own pixel limit (check_pixel_limit) before decoding
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        with _pillow_warnings_logged(path):
             image = Image.open(path)
     except Image.DecompressionBombError as err:
         raise SceneError(f"{path}: image is too large to open safely ({_short(err)})") from err
@@ -63,11 +73,12 @@ def _open(path: Path) -> Iterator[Image.Image]:
 
 
 def _orientation(image: Image.Image) -> int:
-    """The EXIF orientation tag (1 = as stored) of an opened image."""
-    try:
-        value = image.getexif().get(EXIF_ORIENTATION, 1)
-    except Exception:  # a damaged EXIF block: show the pixels as stored
-        return 1
+    """The EXIF orientation tag (1 = as stored) of an opened image; 1 for a damaged EXIF block."""
+    with _pillow_warnings_logged(Path(getattr(image, "filename", "") or "image")):
+        try:
+            value = image.getexif().get(EXIF_ORIENTATION, 1)
+        except Exception:  # a damaged EXIF block: show the pixels as stored
+            value = 1
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
@@ -131,8 +142,7 @@ def decode_array(path: Path) -> np.ndarray:
         log.warning("%s: 16-bit colour PNG read with 8-bit precision (Pillow limitation)", path)
     with _open(path) as image:
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # size checked by the caller
+            with _pillow_warnings_logged(path):  # the size was checked by the caller
                 image.load()
                 if _orientation(image) != 1:
                     image = ImageOps.exif_transpose(image)
