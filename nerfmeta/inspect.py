@@ -17,7 +17,7 @@ from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.normalize import describe
 from nerfmeta.data.registry import load_scene_with
 from nerfmeta.data.scene import Normalization, Scene
-from nerfmeta.errors import ConfigError
+from nerfmeta.paths import check_output_folder, os_errors_named
 from nerfmeta.io import atomic_path, write_json
 from nerfmeta.render.rays import frustum_corners
 
@@ -212,17 +212,17 @@ def inspect_scene(
     Everything is loaded and drawn before ``out`` is created, so an error writes nothing.
 
     Raises:
-        SceneError: a bad scene. ConfigError: ``out`` exists and is not a folder.
+        SceneError: a bad scene. ConfigError: ``out`` cannot be a folder we write in
+            (:func:`~nerfmeta.paths.check_output_folder`) or writing failed.
     """
-    out_dir = None if out is None else Path(out)
-    if out_dir is not None and out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"{out_dir}: --out exists and is not a folder")
+    out_dir = None if out is None else check_output_folder(out, option="--out")
     scene = load_scene_with(path, options)
     summary = summarize_scene(scene)
     if out_dir is not None:
         fig = camera_figure(scene)
-        save_png(fig, out_dir / "cameras.png")
-        write_json(out_dir / "inspect.json", summary)
+        with os_errors_named(out_dir, option="--out"):
+            save_png(fig, out_dir / "cameras.png")
+            write_json(out_dir / "inspect.json", summary)
     return summary
 
 

@@ -1,15 +1,17 @@
-"""Output files named by the user (``classify --json-out FILE``): checked before any work, written
-with every OS failure (full disk, read-only place) turned into one line naming the path.
+"""Output paths named by the user (``classify --json-out FILE``, ``inspect --out DIR``): checked
+before any work, written with every OS failure (full disk, read-only place) turned into one line
+naming the path.
 
-Folders written by commands (run folders) are :mod:`nerfmeta.io`'s business; this module is for
-single files the user names. Writes stay atomic (:func:`nerfmeta.io.write_json`).
+Run folders (fit, pretraining, ...) are :mod:`nerfmeta.io`'s business; this module is for the
+plain files and folders a command writes. Writes stay atomic (:func:`nerfmeta.io.write_json`).
 """
 
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import write_json
@@ -35,22 +37,46 @@ def check_output_file(path: str | os.PathLike, *, option: str) -> Path:
             raise ConfigError(f"{option} {path}: is a folder; give a file path")
         if not path.is_file():
             raise ConfigError(f"{option} {path}: exists and is not a regular file (a device or pipe); refusing to replace it")
-    parent = path.parent
-    while not parent.exists():
-        if parent.is_symlink():
-            raise ConfigError(f"{option} {path}: {parent} is a symbolic link to a missing target")
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ConfigError(f"{option} {path}: cannot be created because {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{option} {path}: folder {parent} is not writable")
+    _check_creatable(path.parent, path, option)
     return path
+
+
+def check_output_folder(path: str | os.PathLike, *, option: str) -> Path:
+    """The folder to write for ``option`` (existing or to be made), or a one-line :class:`ConfigError`:
+    something that is not a folder, a symbolic link to a missing target, a path below a regular file,
+    or a place the process may not write in."""
+    path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise ConfigError(f"{option} {path}: is a symbolic link to a missing target ({os.readlink(path)})")
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{option} {path}: exists and is not a folder")
+    _check_creatable(path, path, option)
+    return path
+
+
+def _check_creatable(folder: Path, path: Path, option: str) -> None:
+    """``folder`` exists as a writable folder, or its nearest existing ancestor is one (so it can be made)."""
+    while not folder.exists():
+        if folder.is_symlink():
+            raise ConfigError(f"{option} {path}: {folder} is a symbolic link to a missing target")
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ConfigError(f"{option} {path}: cannot be created because {folder} is a file, not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {path}: folder {folder} is not writable")
+
+
+@contextmanager
+def os_errors_named(path: Path, *, option: str) -> Iterator[None]:
+    """Turn an OS failure inside the block (full disk, read-only place) into one line naming ``path``."""
+    try:
+        yield
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        raise ConfigError(f"{option} {path}: cannot write ({reason})") from None
 
 
 def write_output_json(path: Path, obj: Any, *, option: str) -> None:
     """Write ``obj`` as JSON to ``path`` (atomically); an OS failure is a one-line :class:`ConfigError`."""
-    try:
+    with os_errors_named(path, option=option):
         write_json(path, obj)
-    except OSError as err:
-        reason = err.strerror or type(err).__name__
-        raise ConfigError(f"{option} {path}: cannot write ({reason}); nothing was written") from None

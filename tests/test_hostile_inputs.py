@@ -4,6 +4,7 @@ one line on stderr with exit code 2, never a traceback after work was done or a 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import io
 import json
@@ -390,3 +391,37 @@ def test_scene_json_too_large_or_too_deep_is_one_line(tmp_path: Path, capsys: py
         f.truncate(300 << 20)  # sparse: no disk used
     line = one_line_error(capsys, main(["inspect", str(scene)]), "inspect")
     assert "transforms_train.json: 300 MiB is too large for a scene file" in line
+
+
+# --- output folders that cannot be written (inspect --out) --------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda t: (t / "afile").write_text("x") and t / "afile" / "sub", "cannot be created because"),
+        (lambda t: (t / "dangling").symlink_to(t / "nowhere") or t / "dangling", "is a symbolic link to a missing target"),
+        (lambda t: (t / "gone").symlink_to(t / "nowhere") or t / "gone" / "sub", "gone is a symbolic link to a missing target"),
+    ],
+)
+def test_inspect_out_that_cannot_be_a_folder_is_refused_before_loading(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], make: Any, message: str
+) -> None:
+    scene = write_tiny_scene(tmp_path / "s", n_train=2, n_test=1, size=8)
+    out = make(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    line = one_line_error(capsys, main(["inspect", str(scene), "--out", str(out)]), "inspect")
+    assert f"--out {out}" in line and message in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_inspect_out_on_a_full_disk_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = write_tiny_scene(tmp_path / "s", n_train=2, n_test=1, size=8)
+
+    def full(self: Path, data: bytes) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    line = one_line_error(capsys, main(["inspect", str(scene), "--out", str(tmp_path / "out")]), "inspect")
+    assert "cannot write (No space left on device)" in line
+    assert not (tmp_path / "out" / "inspect.json").exists()
