@@ -215,7 +215,7 @@ def inspect_scene(
         SceneError: a bad scene. ConfigError: ``out`` cannot be a folder we write in
             (:func:`~nerfmeta.paths.check_output_folder`) or writing failed.
     """
-    out_dir = None if out is None else check_output_folder(out, option="--out")
+    out_dir = None if out is None else check_output_folder(out, option="--out", inputs=(path,))
     scene = load_scene_with(path, options)
     summary = summarize_scene(scene)
     if out_dir is not None:

@@ -11,19 +11,33 @@ from __future__ import annotations
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import write_json
 
 
-def check_output_file(path: str | os.PathLike, *, option: str) -> Path:
+def _inputs_hit(target: Path, inputs: Sequence[str | os.PathLike | None]) -> Path | None:
+    """The input (file or folder) that ``target`` is, or lies inside, if any."""
+    resolved = target.resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        source = Path(given).resolve()
+        if resolved == source or source in resolved.parents:
+            return Path(given)
+    return None
+
+
+def check_output_file(path: str | os.PathLike, *, option: str, inputs: Sequence[str | os.PathLike | None] = ()) -> Path:
     """The file to write for ``option``, or a one-line :class:`ConfigError` when it cannot be written.
 
     Refused: a path naming a folder (existing, or written with a trailing slash), anything that
     exists and is not a regular file (a device such as ``/dev/full``, a pipe: an atomic write would
-    replace it), a symbolic link to a missing target, a path below a regular file, and a folder the
-    process may not write in. A link to an existing file gives that file.
+    replace it), a symbolic link to a missing target, a path below a regular file, a folder the
+    process may not write in, and an existing file that is or lies inside one of ``inputs`` (the
+    command's own input files and folders are never replaced). A link to an existing file gives
+    that file.
     """
     text = os.fspath(path)
     path = Path(text)
@@ -37,15 +51,21 @@ def check_output_file(path: str | os.PathLike, *, option: str) -> Path:
             raise ConfigError(f"{option} {path}: is a folder; give a file path")
         if not path.is_file():
             raise ConfigError(f"{option} {path}: exists and is not a regular file (a device or pipe); refusing to replace it")
+        hit = _inputs_hit(path, inputs)
+        if hit is not None:
+            raise ConfigError(f"{option} {path}: would replace a file of the input {hit}; write elsewhere")
     _check_creatable(path.parent, path, option)
     return path
 
 
-def check_output_folder(path: str | os.PathLike, *, option: str) -> Path:
+def check_output_folder(path: str | os.PathLike, *, option: str, inputs: Sequence[str | os.PathLike | None] = ()) -> Path:
     """The folder to write for ``option`` (existing or to be made), or a one-line :class:`ConfigError`:
     something that is not a folder, a symbolic link to a missing target, a path below a regular file,
-    or a place the process may not write in."""
+    a place the process may not write in, or one of ``inputs`` or a folder inside one."""
     path = Path(path)
+    hit = _inputs_hit(path, inputs)
+    if hit is not None:
+        raise ConfigError(f"{option} {path}: is the input {hit} or lies inside it; write elsewhere")
     if path.is_symlink() and not path.exists():
         raise ConfigError(f"{option} {path}: is a symbolic link to a missing target ({os.readlink(path)})")
     if path.exists() and not path.is_dir():

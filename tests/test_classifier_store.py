@@ -236,3 +236,17 @@ def test_json_out_on_a_full_disk_is_one_line_and_leaves_nothing(saved: Path, tmp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "answer.json: cannot write (No space left on device)" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clf", "scene"]
+
+
+@pytest.mark.parametrize("victim", ["scene/transforms_train.json", "clf/classifier.json", "scene/train/r_0.png"])
+def test_json_out_never_replaces_a_file_of_the_inputs(saved: Path, tmp_path: Path, capsys, victim: str):
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+    target = tmp_path / victim
+    before = target.read_bytes()
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(target)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "would replace a file of the input" in err[0]
+    assert target.read_bytes() == before

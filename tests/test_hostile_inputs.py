@@ -425,3 +425,12 @@ def test_inspect_out_on_a_full_disk_is_one_line(tmp_path: Path, capsys: pytest.C
     line = one_line_error(capsys, main(["inspect", str(scene), "--out", str(tmp_path / "out")]), "inspect")
     assert "cannot write (No space left on device)" in line
     assert not (tmp_path / "out" / "inspect.json").exists()
+
+
+@pytest.mark.parametrize("inside", ["", "sub"])
+def test_inspect_out_is_never_the_scene_or_inside_it(tmp_path: Path, capsys: pytest.CaptureFixture[str], inside: str) -> None:
+    scene = write_tiny_scene(tmp_path / "s", n_train=2, n_test=1, size=8)
+    before = sorted(p.relative_to(scene) for p in scene.rglob("*"))
+    line = one_line_error(capsys, main(["inspect", str(scene), "--out", str(scene / inside)]), "inspect")
+    assert "is the input" in line and "write elsewhere" in line
+    assert sorted(p.relative_to(scene) for p in scene.rglob("*")) == before

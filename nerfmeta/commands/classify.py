@@ -32,7 +32,8 @@ def run(args: argparse.Namespace) -> int:
     from classifier.store import classify_views, load_classifier
     from nerfmeta.paths import check_output_file, write_output_json
 
-    json_out = check_output_file(args.json_out, option="--json-out") if args.json_out else None  # before any work
+    json_out = (check_output_file(args.json_out, option="--json-out", inputs=(args.scene, args.classifier))
+                if args.json_out else None)  # before any work; never replaces a file of the inputs
     classifier = load_classifier(args.classifier, device=args.device)
     if args.score is not None:
         classifier = classifier.with_score(args.score)
