@@ -21,6 +21,7 @@ from PIL import Image
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
+from nerfmeta.data import common
 from nerfmeta.data.arrays import npz_headers
 from nerfmeta.data.bounds import default_near_far
 from nerfmeta.data.synthetic import tiny_cameras, write_tiny_scene
@@ -434,3 +435,17 @@ def test_inspect_out_is_never_the_scene_or_inside_it(tmp_path: Path, capsys: pyt
     line = one_line_error(capsys, main(["inspect", str(scene), "--out", str(scene / inside)]), "inspect")
     assert "is the input" in line and "write elsewhere" in line
     assert sorted(p.relative_to(scene) for p in scene.rglob("*")) == before
+
+
+def test_views_that_would_not_fit_in_memory_are_refused_before_decoding(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A small transforms.json can list one image thousands of times: the stack is estimated from the headers first."""
+    scene = edited_tiny_scene(tmp_path / "s", lambda d: d.update(frames=d["frames"][:1] * 2000))
+    monkeypatch.setattr(common, "memory_limit_bytes", lambda: 1 << 20)
+    line = one_line_error(capsys, main(["inspect", str(scene)]), "inspect")
+    assert "4000 views of 8x8 need 4 MiB loaded, more than this machine's 1 MiB" in line
+    path = write_npz(tmp_path / "s.npz", tiny_npz_members((2, 16, 16, 3)))
+    monkeypatch.setattr(common, "memory_limit_bytes", lambda: 1000)
+    line = one_line_error(capsys, main(["inspect", str(path)]), "inspect")
+    assert "s.npz: images: 2 views of 16x16 need" in line

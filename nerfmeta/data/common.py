@@ -248,6 +248,25 @@ def check_image_sizes(paths: Sequence[Path], max_pixels: int) -> tuple[int, int]
     return first
 
 
+def memory_limit_bytes() -> int:
+    """This machine's physical memory: a scene whose images need more cannot be loaded."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # not a POSIX system: no limit known
+        return 1 << 62
+
+
+def check_stack_memory(n: int, height: int, width: int, factor: float, *, where: str) -> None:
+    """Refuse, before anything is decoded, ``n`` views of ``height`` x ``width`` whose float32 stack
+    (RGB + alpha, after downscaling by ``factor``) would not fit in :func:`memory_limit_bytes`."""
+    out_h, out_w = downscaled_size(height, width, factor)
+    need = n * out_h * out_w * 4 * 4
+    limit = memory_limit_bytes()
+    if need > limit:
+        raise SceneError(f"{where}: {n} views of {width}x{height} need {need / 2**20:,.0f} MiB loaded, more than this "
+                         f"machine's {limit / 2**20:,.0f} MiB of memory (use --downscale or fewer views)")
+
+
 def stack_views(
     batches: Iterable[tuple[torch.Tensor, int]], n: int, height: int, width: int, options: LoadOptions, factor: float
 ) -> ViewStack:
@@ -289,6 +308,7 @@ def read_views(paths: Sequence[Path], options: LoadOptions, *, downscale: float 
     """
     factor = options.downscale if downscale is None else downscale
     height, width = check_image_sizes(paths, options.max_pixels)
+    check_stack_memory(len(paths), height, width, factor, where=str(paths[0].parent))
 
     def batches() -> Iterator[tuple[torch.Tensor, int]]:
         for start in range(0, len(paths), READ_CHUNK):

@@ -23,6 +23,7 @@ from nerfmeta.data.common import (
     LoadOptions,
     build_scene,
     check_pose,
+    check_stack_memory,
     every_nth_splits,
     finite_number,
     image_arrays_to_views,
@@ -51,6 +52,7 @@ def check_declared_shapes(path: Path, headers: dict[str, ArrayHeader], max_pixel
     if len(images) != 4 or images[-1] not in (3, 4) or images[0] < 1:
         raise SceneError(f"{path}: images must be (N, H, W, 3) with N >= 1, got shape {images}")
     check_pixel_limit(f"{path}: images", images[1], images[2], max_pixels)
+    check_stack_memory(images[0], images[1], images[2], 1.0, where=f"{path}: images")
     if poses != (images[0], 4, 4):
         raise SceneError(f"{path}: poses must be (N, 4, 4) with N = {images[0]} images, got shape {poses}")
     if math.prod(focal) != 1:
