@@ -181,6 +181,7 @@ def shift_x(amount: float) -> Any:
         (lambda d: d.update(aabb=[[0.0] * 3, [1e-300] * 3]), None, False, "aabb of size 1e-300 is out of proportion"),
         (lambda d: d.update(aabb=[[100.0] * 3, [101.0] * 3]), None, False, "aabb is 1"),
         (None, shift_x(1e300), False, "a camera stands 1e+300 from the origin"),
+        (None, lambda f: f["transform_matrix"][0].__setitem__(0, 1e300), False, "rotation entry 1e+300 outside [-1, 1]"),
         (lambda d: d.pop("aabb"), shift_x(1e30), False, "a camera stands 1e+30 from the origin"),
         (lambda d: d.update(cx=1e30), None, True, "principal point cx 1e+30 px"),
         (lambda d: d.update(fl_x=1e-300), None, True, "focal fx 1e-300 px"),

@@ -150,6 +150,8 @@ def check_pose(matrix: Any, *, where: str) -> np.ndarray:
     if np.abs(pose[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
         raise SceneError(f"{where}: pose bottom row must be [0, 0, 0, 1], got {pose[3].tolist()}")
     rot = pose[:3, :3]
+    if np.abs(rot).max() > 1.0 + ROTATION_TOLERANCE:  # before the product, which would overflow for huge entries
+        raise SceneError(f"{where}: pose is not rigid (rotation entry {float(np.abs(rot).max()):g} outside [-1, 1])")
     err = float(np.abs(rot.T @ rot - np.eye(3)).max())
     if err > ROTATION_TOLERANCE:
         raise SceneError(f"{where}: pose is not rigid (rotation not orthonormal, error {err:.3g})")
