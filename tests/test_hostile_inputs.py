@@ -214,6 +214,11 @@ def test_extreme_npz_focal_and_llff_depths_are_refused(tmp_path: Path, capsys: p
     np.save(folder / "poses_bounds.npy", rows)
     line = one_line_error(capsys, main(["inspect", str(folder)]), "inspect")
     assert "poses_bounds.npy: far 2.2e-300 is outside" in line
+    rows[:, 15:] = [1.0, 5.0]
+    rows[0, 4] = 1e-320  # a subnormal image height: 4 / 1e-320 overflowed with a numpy warning on stderr
+    np.save(folder / "poses_bounds.npy", rows)
+    line = one_line_error(capsys, main(["inspect", str(folder)]), "inspect")
+    assert "poses_bounds.npy: image height and width (column 5) must be between 1 and 1e+06 pixels" in line
 
 
 def test_scenes_in_range_still_load(tmp_path: Path) -> None:

@@ -39,6 +39,8 @@ NAME = "llff"
 EXPECTS = "poses_bounds.npy (N x 17) with images/ or images_N/"
 FILE_NAME = "poses_bounds.npy"
 ASPECT_TOLERANCE = 0.02
+MAX_SIDE = 1e6
+"""Largest image side (pixels) a poses_bounds.npy row may describe."""
 
 
 def detect(path: Path) -> bool:
@@ -92,6 +94,8 @@ def load(path: Path, options: LoadOptions) -> Scene:
     hwf = mats[:, :, 4]
     if (hwf <= 0).any():
         raise SceneError(f"{file}: image height, width and focal (column 5) must be > 0")
+    if (hwf[:, :2] < 1).any() or (hwf[:, :2] > MAX_SIDE).any():
+        raise SceneError(f"{file}: image height and width (column 5) must be between 1 and {MAX_SIDE:g} pixels")
     poses = llff_to_opengl(mats[:, :, :4])
     for k, pose in enumerate(poses):
         check_pose(pose, where=f"{file}: view {k}")
