@@ -169,6 +169,7 @@ def shift_x(amount: float) -> Any:
     return edit
 
 
+@pytest.mark.filterwarnings("error")  # a numpy overflow warning would print extra lines on stderr
 @pytest.mark.parametrize(
     ("edit", "frame_edit", "to_nerfstudio", "message"),
     [
@@ -196,10 +197,20 @@ def test_extreme_numbers_are_refused_naming_the_file_and_value(
     assert ("transforms.json" if to_nerfstudio else "transforms_train.json") in line and message in line
 
 
+@pytest.mark.filterwarnings("error")  # a numpy overflow warning would print extra lines on stderr
 def test_extreme_npz_focal_and_llff_depths_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     members = {**tiny_npz_members(), "focal": npy_bytes((), "<f8", np.float64(1e300).tobytes())}
     line = one_line_error(capsys, main(["inspect", str(write_npz(tmp_path / "f.npz", members))]), "inspect")
     assert "f.npz: view 0: focal fx 1e+300 px" in line
+    poses, intrinsics = tiny_cameras(4, 0.5, 8)
+    far_away = poses.numpy().copy()
+    far_away[1, 0, 3] = 1e300  # squared in the near/far guess: an overflow warning on stderr before
+    np.savez(tmp_path / "p.npz", images=np.zeros((4, 8, 8, 3), np.uint8), poses=far_away, focal=float(intrinsics[0]))
+    line = one_line_error(capsys, main(["inspect", str(tmp_path / "p.npz")]), "inspect")
+    assert "p.npz: the cameras are spread over" in line
+    np.savez(tmp_path / "i.npz", images=np.full((4, 8, 8, 3), 1e300), poses=poses.numpy(), focal=float(intrinsics[0]))
+    line = one_line_error(capsys, main(["inspect", str(tmp_path / "i.npz")]), "inspect")
+    assert "i.npz: images[0]: float pixel values must be finite and within [0, 1]" in line
     folder = tmp_path / "llff"
     (folder / "images").mkdir(parents=True)
     rows = np.zeros((2, 17))

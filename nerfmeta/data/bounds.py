@@ -62,6 +62,8 @@ def near_far_from_cameras(poses: np.ndarray) -> tuple[float, float] | None:
     Args:
         poses: (n, 4, 4) camera-to-world (OpenGL: the camera looks along -z).
     """
+    if not np.abs(poses[:, :3, 3]).max() < 1e150:  # squared distances would overflow: no guess (the range checks refuse it)
+        return None
     origins = poses[:, :3, 3]
     forward = -poses[:, :3, 2]
     forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)

@@ -198,9 +198,9 @@ def to_float_image(array: np.ndarray, *, name: str = "image") -> torch.Tensor:
     elif array.dtype == np.bool_:
         image = torch.from_numpy(array.astype(np.float32))
     elif np.issubdtype(array.dtype, np.floating):
-        image = torch.from_numpy(array.astype(np.float32))
-        if not bool(torch.isfinite(image).all()) or image.min() < 0.0 or image.max() > 1.0:
+        if not bool(np.isfinite(array).all()) or array.min() < 0.0 or array.max() > 1.0:  # before a cast that could overflow
             raise SceneError(f"{name}: float pixel values must be finite and within [0, 1]")
+        image = torch.from_numpy(array.astype(np.float32))
     else:
         raise SceneError(f"{name}: unsupported pixel type {array.dtype} (expected 8- or 16-bit)")
     channels = image.shape[-1]
