@@ -32,6 +32,7 @@ from nerfmeta.fit.run import RunConfig, run_fit
 from nerfmeta.render.cameras import fibonacci_directions, look_at
 from nerfmeta.stress import MAX_PSNR_GAP, QUICK, transform_blender_scene
 from nerfmeta.zoo import ZOO_FORMAT, load_zoo
+from fuzz_scenes import KINDS as FUZZ_KINDS, fuzz
 
 
 def one_line_error(capsys: pytest.CaptureFixture[str], code: int, command: str) -> str:
@@ -466,3 +467,12 @@ def test_views_that_would_not_fit_in_memory_are_refused_before_decoding(
     monkeypatch.setattr(common, "memory_limit_bytes", lambda: 1000)
     line = one_line_error(capsys, main(["inspect", str(path)]), "inspect")
     assert "s.npz: images: 2 views of 16x16 need" in line
+
+
+# --- seeded fuzzing: hostile scene files the tests above did not think of -----------------------------------
+
+
+@pytest.mark.parametrize("kind", FUZZ_KINDS)
+def test_fuzzed_scenes_load_or_are_refused_in_one_line(tmp_path: Path, kind: str) -> None:
+    broken = [o for o in fuzz(kind, 12, tmp_path) if o.broken]
+    assert not broken, broken[:3]
