@@ -91,17 +91,24 @@ def _nerfstudio(folder: Path, rng: random.Random) -> Path:
     return scene
 
 
-def _llff(folder: Path, rng: random.Random) -> Path:
+def llff_rows(folder: Path, n: int = 3, *, height: int = 4, width: int = 6) -> np.ndarray:
+    """Write ``n`` small images into ``folder/images`` and return a matching (n, 17) ``poses_bounds``
+    (identity-rotation cameras 0.1 apart, focal 5, depths 1 to 5), not yet saved."""
     (folder / "images").mkdir(parents=True)
-    rows = np.zeros((3, 17))
-    for k in range(3):
+    rows = np.zeros((n, 17))
+    for k in range(n):
         mat = np.zeros((3, 5))
         mat[:, :3] = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]  # LLFF [down, right, back] of an identity camera
         mat[:, 3] = [k * 0.1, 0.0, 0.0]
-        mat[:, 4] = [4, 6, 5.0]
+        mat[:, 4] = [height, width, 5.0]
         rows[k, :15] = mat.reshape(-1)
         rows[k, 15:] = [1.0, 5.0]
-        Image.new("RGB", (6, 4), (k * 50, 20, 30)).save(folder / "images" / f"{k}.png")
+        Image.new("RGB", (width, height), (k * 50, 20, 30)).save(folder / "images" / f"{k}.png")
+    return rows
+
+
+def _llff(folder: Path, rng: random.Random) -> Path:
+    rows = llff_rows(folder)
     for _ in range(rng.randint(1, 3)):
         rows[rng.randrange(3), rng.randrange(17)] = rng.choice(NUMBERS)
     np.save(folder / "poses_bounds.npy", rows)

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from numpy.lib import format as npy_format
 import torch
-from PIL import Image
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
@@ -32,7 +31,7 @@ from nerfmeta.fit.run import RunConfig, run_fit
 from nerfmeta.render.cameras import fibonacci_directions, look_at
 from nerfmeta.stress import MAX_PSNR_GAP, QUICK, transform_blender_scene
 from nerfmeta.zoo import ZOO_FORMAT, load_zoo
-from fuzz_scenes import KINDS as FUZZ_KINDS, fuzz
+from fuzz_scenes import KINDS as FUZZ_KINDS, fuzz, llff_rows
 
 
 def one_line_error(capsys: pytest.CaptureFixture[str], code: int, command: str) -> str:
@@ -213,16 +212,8 @@ def test_extreme_npz_focal_and_llff_depths_are_refused(tmp_path: Path, capsys: p
     line = one_line_error(capsys, main(["inspect", str(tmp_path / "i.npz")]), "inspect")
     assert "i.npz: images[0]: float pixel values must be finite and within [0, 1]" in line
     folder = tmp_path / "llff"
-    (folder / "images").mkdir(parents=True)
-    rows = np.zeros((2, 17))
-    for k in range(2):
-        mat = np.zeros((3, 5))
-        mat[:, :3] = [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]  # LLFF [down, right, back] of an identity camera
-        mat[:, 3] = [k * 0.1, 0.0, 0.0]
-        mat[:, 4] = [4, 4, 5.0]
-        rows[k, :15] = mat.reshape(-1)
-        rows[k, 15:] = [1e-300, 2e-300]
-        Image.new("RGB", (4, 4)).save(folder / "images" / f"{k}.png")
+    rows = llff_rows(folder, 2)
+    rows[:, 15:] = [1e-300, 2e-300]
     np.save(folder / "poses_bounds.npy", rows)
     line = one_line_error(capsys, main(["inspect", str(folder)]), "inspect")
     assert "poses_bounds.npy: far 2.2e-300 is outside" in line
