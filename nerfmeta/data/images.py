@@ -8,7 +8,9 @@ Files are opened with Pillow, which reads the header (size, mode, EXIF) without 
 pixels. Every pixel mode is converted explicitly (:func:`pixel_array`): 1-bit, grayscale (8 and
 16 bit), grayscale + alpha, palette (with its transparency), RGB, RGBA, CMYK and YCbCr; a
 transparency key (PNG ``tRNS``) becomes an alpha channel; EXIF orientation is applied, so sizes
-and pixels are those a viewer shows. Other modes (32-bit integer or float images) are refused.
+and pixels are those a viewer shows (a pose tool that ignored the tag saw the other size; the
+parsers' size checks, LLFF's aspect and nerfstudio's ``w``/``h``, then refuse the scene rather than
+fit it on its side). Other modes (32-bit integer or float images) are refused.
 Known limit: Pillow reads 16-bit *colour* PNGs as 8-bit (it keeps the high byte), so those come
 back correctly scaled but with 8-bit precision; a warning is logged. 16-bit grayscale PNGs keep
 their full precision.
