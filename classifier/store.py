@@ -35,6 +35,8 @@ FORMAT = "nerfmeta-classifier"
 VERSION = 1
 WEIGHTS_FILE = "model.safetensors"
 META_FILE = "classifier.json"
+MAX_INPUT_SIZE = 1024
+"""Largest input side a classifier.json may ask for (views are resized to it; bigger is a memory bomb)."""
 CURVE_FILE = "training_curve.png"
 HISTORY_FILE = "history.json"
 STATS_PREFIX = "feature_stats."
@@ -208,8 +210,10 @@ def read_meta(folder: str | os.PathLike) -> tuple[ClassifierMeta, dict[str, Any]
     try:
         categories = doc["categories"]
         inp, unknown, norm = doc["input"], doc["unknown"], doc["input"]["normalization"]
-        if not isinstance(categories, list) or len(categories) < 2 or not all(isinstance(c, str) for c in categories):
+        if not isinstance(categories, list) or len(categories) < 2 or not all(isinstance(c, str) and c for c in categories):
             raise ClassifierError(f"{path}: 'categories' must list at least two names")
+        if len(set(categories)) != len(categories):
+            raise ClassifierError(f"{path}: 'categories' lists a name twice")
         if doc["arch"] not in ARCHITECTURES:
             raise ClassifierError(f"{path}: arch {doc['arch']!r} is not one of {', '.join(ARCHITECTURES)}")
         if doc["stem"] not in STEMS:
@@ -217,12 +221,17 @@ def read_meta(folder: str | os.PathLike) -> tuple[ClassifierMeta, dict[str, Any]
         if unknown["score"] not in SCORES:
             raise ClassifierError(f"{path}: unknown score {unknown['score']!r} is not one of {', '.join(SCORES)}")
         size = inp["size"]
-        if not isinstance(size, int) or size < 8:
-            raise ClassifierError(f"{path}: input size {size!r} must be an integer >= 8")
+        if isinstance(size, bool) or not isinstance(size, int) or not 8 <= size <= MAX_INPUT_SIZE:
+            raise ClassifierError(f"{path}: input size {size!r} must be an integer from 8 to {MAX_INPUT_SIZE}")
         threshold = unknown["threshold"]
         thresholds = {str(k): float(v) for k, v in dict(unknown.get("thresholds", {})).items()}
-        if not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not math.isfinite(threshold):
             raise ClassifierError(f"{path}: unknown threshold {threshold!r} must be a finite number")
+        if not all(math.isfinite(v) for v in thresholds.values()):
+            raise ClassifierError(f"{path}: unknown.thresholds must be finite numbers, got {thresholds}")
+        background = _rgb(inp["background"], f"{path}: input.background")
+        if not all(0.0 <= v <= 1.0 for v in background):
+            raise ClassifierError(f"{path}: input.background must be three values in [0, 1], got {list(background)}")
         std = _rgb(norm["std"], f"{path}: input.normalization.std")
         if min(std) <= 0:
             raise ClassifierError(f"{path}: input.normalization.std must be positive")
@@ -231,14 +240,15 @@ def read_meta(folder: str | os.PathLike) -> tuple[ClassifierMeta, dict[str, Any]
             arch=doc["arch"],
             stem=doc["stem"],
             input_size=size,
-            background=_rgb(inp["background"], f"{path}: input.background"),
+            background=background,
             mean=_rgb(norm["mean"], f"{path}: input.normalization.mean"),
             std=std,
             score=unknown["score"],
             threshold=float(threshold),
             thresholds=thresholds or {unknown["score"]: float(threshold)},
         )
-        _ = doc["weights"]["sha256"]
+        if not isinstance(doc["weights"]["sha256"], str):
+            raise ClassifierError(f"{path}: weights.sha256 must be a string")
     except (KeyError, TypeError, ValueError) as err:
         raise ClassifierError(f"{path}: missing or malformed entry ({type(err).__name__}: {err}); retrain or restore the file") from None
     return meta, doc

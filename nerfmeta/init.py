@@ -20,9 +20,10 @@ from typing import Any
 
 import torch
 
+from nerfmeta import validate
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
-from nerfmeta.fields.registry import build_model, config_from_dict
+from nerfmeta.fields.registry import BACKBONES, build_model, config_from_dict
 from nerfmeta.io import check_sha256, load_tensors, read_json_index, save_tensors, sha256_file, to_jsonable, write_json
 
 INIT_FORMAT = "nerfmeta-init-1"
@@ -47,8 +48,14 @@ class SavedInit:
         """A model of the saved backbone, shaped like the saved one, holding its weights."""
         placeholder = torch.tensor([[-1.0] * 3, [1.0] * 3])  # the real bounds are buffers in ``state``
         model = build_model(self.backbone, self.model_config, placeholder, seed=seed, device=device)
-        model.load_structure(self.structure)
-        missing, unexpected = model.load_state_dict({k: v.to(device) for k, v in self.state.items()}, strict=False)
+        try:
+            model.load_structure(self.structure)
+        except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as err:
+            raise ConfigError(f"{self.path / INDEX}: structure does not describe a {self.backbone} model ({err!r})") from None
+        try:
+            missing, unexpected = model.load_state_dict({k: v.to(device) for k, v in self.state.items()}, strict=False)
+        except RuntimeError as err:  # a tensor of another shape
+            raise ConfigError(f"{self.path}: weights do not fit a {self.backbone} model ({str(err).splitlines()[-1].strip()})") from None
         if missing or unexpected:
             raise ConfigError(f"{self.path}: weights do not fit a {self.backbone} model (missing {missing[:3]}, unexpected {unexpected[:3]})")
         return model
@@ -81,15 +88,23 @@ def load_init(folder: str | os.PathLike, *, expect_kind: str | None = None) -> S
                           missing=f"an initialisation folder needs {INDEX} and {WEIGHTS}")
     if not weights.is_file():
         raise ConfigError(f"{weights}: missing; an initialisation folder needs {INDEX} and {WEIGHTS}")
-    if expect_kind is not None and doc.get("kind") != expect_kind:
-        raise ConfigError(f"{folder}: is a {doc.get('kind')!r} initialisation, not {expect_kind!r}")
+    kind = validate.text(doc.get("kind"), where=f"{index}: kind", choices=KINDS)
+    if expect_kind is not None and kind != expect_kind:
+        raise ConfigError(f"{folder}: is a {kind!r} initialisation, not {expect_kind!r}")
+    backbone = validate.text(doc.get("backbone"), where=f"{index}: backbone", choices=tuple(BACKBONES))
+    values = validate.mapping(doc.get("model_config"), where=f"{index}: model_config")
+    structure = validate.mapping(doc.get("structure", {}), where=f"{index}: structure")
+    meta = validate.mapping(doc.get("meta", {}), where=f"{index}: meta")
     check_sha256(weights, doc.get("sha256"), index, "the file is corrupted or was replaced")
+    try:
+        config = config_from_dict(backbone, values)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{index}: model_config is not a valid {backbone} configuration ({err})") from None
     try:
         state = load_tensors(weights)
     except Exception as err:  # safetensors' own error types
         raise ConfigError(f"{weights}: not readable ({err})") from None
-    config = config_from_dict(doc["backbone"], doc["model_config"])
-    return SavedInit(folder, doc["kind"], doc["backbone"], config, doc["structure"], state, doc.get("meta", {}))
+    return SavedInit(folder, kind, backbone, config, structure, state, meta)
 
 
 def parse_init(spec: str) -> tuple[str, Path | None]:

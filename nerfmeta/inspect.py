@@ -17,7 +17,7 @@ from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.normalize import describe
 from nerfmeta.data.registry import load_scene_with
 from nerfmeta.data.scene import Normalization, Scene
-from nerfmeta.errors import ConfigError
+from nerfmeta.paths import check_output_folder, os_errors_named
 from nerfmeta.io import atomic_path, write_json
 from nerfmeta.render.rays import frustum_corners
 
@@ -56,6 +56,8 @@ class SceneSummary:
     """Ray distance where sampling starts."""
     far: float
     """Ray distance where sampling ends."""
+    near_far_source: str
+    """Where ``near``/``far`` came from: the file, the format's default, or derived from the cameras."""
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
     """Axis-aligned box ``(min_xyz, max_xyz)`` holding the content."""
     category: str | None
@@ -90,6 +92,7 @@ def summarize_scene(scene: Scene) -> SceneSummary:
         intrinsics_vary=bool((intr - intr[:1]).abs().max() > 1e-6),
         near=float(scene.near),
         far=float(scene.far),
+        near_far_source=scene.near_far_source,
         bounds=(tuple(float(v) for v in bounds[0]), tuple(float(v) for v in bounds[1])),  # type: ignore[arg-type]
         category=scene.category,
         background=scene.background,
@@ -114,7 +117,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("resolution", f"{s.width} x {s.height} (downscale {s.downscale:g})"),
         ("focal", f"fx {s.focal[0]:.2f}, fy {s.focal[1]:.2f} px{vary}"),
         ("principal point", f"cx {s.principal_point[0]:.2f}, cy {s.principal_point[1]:.2f} px{vary}"),
-        ("near / far", f"{s.near:.4g} / {s.far:.4g}"),
+        ("near / far", f"{s.near:.4g} / {s.far:.4g} ({s.near_far_source})"),
         ("bounds", f"min {_vec(lo)}  max {_vec(hi)}  size {size}"),
         ("category", s.category or "-"),
         ("background", bg),
@@ -209,17 +212,17 @@ def inspect_scene(
     Everything is loaded and drawn before ``out`` is created, so an error writes nothing.
 
     Raises:
-        SceneError: a bad scene. ConfigError: ``out`` exists and is not a folder.
+        SceneError: a bad scene. ConfigError: ``out`` cannot be a folder we write in
+            (:func:`~nerfmeta.paths.check_output_folder`) or writing failed.
     """
-    out_dir = None if out is None else Path(out)
-    if out_dir is not None and out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"{out_dir}: --out exists and is not a folder")
+    out_dir = None if out is None else check_output_folder(out, option="--out", inputs=(path,))
     scene = load_scene_with(path, options)
     summary = summarize_scene(scene)
     if out_dir is not None:
         fig = camera_figure(scene)
-        save_png(fig, out_dir / "cameras.png")
-        write_json(out_dir / "inspect.json", summary)
+        with os_errors_named(out_dir, option="--out"):
+            save_png(fig, out_dir / "cameras.png")
+            write_json(out_dir / "inspect.json", summary)
     return summary
 
 

@@ -24,6 +24,7 @@ __all__ = [
     "psnr",
     "psnr_to_mse",
     "ssim",
+    "ssim_skip_reason",
 ]
 
 
@@ -186,11 +187,26 @@ def _gaussian_window(window: int, sigma: float, dtype: torch.dtype, device) -> t
     return (taps / taps.sum()).to(device=device, dtype=dtype)
 
 
+SSIM_WINDOW = 11
+"""Gaussian taps of :func:`ssim`'s default window (mip-NeRF / JAXNeRF): images need at least this many pixels per side."""
+
+
+def ssim_skip_reason(height: int, width: int, window: int = SSIM_WINDOW) -> str | None:
+    """Why :func:`ssim` cannot score ``height`` x ``width`` images with ``window``, or None when it can.
+
+    Callers decide with this before a long job (a fit) rather than failing after it.
+    """
+    if height >= window and width >= window:
+        return None
+    return (f"SSIM skipped: the images are {width}x{height} pixels, smaller than its {window}x{window} window "
+            "(use larger images or a smaller --downscale to get SSIM)")
+
+
 def ssim(
     pred: torch.Tensor,
     target: torch.Tensor,
     data_range: float = 1.0,
-    window: int = 11,
+    window: int = SSIM_WINDOW,
     sigma: float = 1.5,
     k1: float = 0.01,
     k2: float = 0.03,

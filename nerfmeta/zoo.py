@@ -27,7 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+from nerfmeta import validate
 from nerfmeta.errors import ConfigError
+from nerfmeta.fields.registry import BACKBONES, config_from_dict
 from nerfmeta.io import check_sha256, read_json_index, sha256_file, to_jsonable, write_json
 
 ZOO_FORMAT = "nerfmeta-zoo-1"
@@ -110,32 +112,72 @@ def load_zoo(root: str | os.PathLike, *, verify: bool = True) -> Zoo:
     """Read ``root/manifest.json`` and (``verify``) check every listed file's SHA-256.
 
     Raises:
-        ConfigError: a missing or unreadable manifest, another format, an entry without its
-            folder or files, a file whose hash differs from the manifest's (one line naming it).
+        ConfigError: a missing or unreadable manifest, another format, a field of the wrong type or
+            range, an entry without its folder or files or whose path leads out of ``root``, a
+            file whose hash differs from the manifest's (one line naming it).
     """
     root = Path(root)
     index = root / MANIFEST
     doc = read_json_index(index, ZOO_FORMAT, what="a nerfmeta model zoo manifest",
                           missing=f"a model zoo folder needs {MANIFEST} (build one with scripts/build_model_zoo)")
-    entries = []
-    for raw in doc.get("entries", []):
-        try:
-            name, kind, rel, files = raw["name"], raw["kind"], raw["path"], dict(raw["files"])
-        except (KeyError, TypeError):
-            raise ConfigError(f"{index}: an entry lacks name/kind/path/files: {str(raw)[:80]}") from None
-        if kind not in KINDS:
-            raise ConfigError(f"{index}: entry {name!r} has unknown kind {kind!r} (expected one of {', '.join(KINDS)})")
-        folder = (root / rel).resolve()
+    raw_entries = doc.get("entries", [])
+    if not isinstance(raw_entries, list) or not raw_entries:
+        raise ConfigError(f"{index}: lists no models ('entries' must be a non-empty list)")
+    entries = [_entry(root, index, k, raw, verify=verify) for k, raw in enumerate(raw_entries)]
+    names = [e.name for e in entries]
+    duplicate = next((n for n in names if names.count(n) > 1), None)
+    if duplicate is not None:
+        raise ConfigError(f"{index}: entry name {duplicate!r} is listed twice")
+    return Zoo(root.resolve(), doc, tuple(entries), check_fit_settings(doc.get("fit", {}), where=f"{index}: fit"))
+
+
+FIT_INTEGERS = {"batch_rays": (1, 1 << 22), "iters": (1, 10_000_000), "eval_every": (0, None), "eval_views": (0, None),
+                "freeze": (0, 1000), "trained_resolution": (1, 65536)}
+"""Integer fields of a manifest's ``fit`` with their (minimum, maximum)."""
+
+
+def check_fit_settings(fit: Any, *, where: str) -> dict[str, Any]:
+    """A manifest's ``fit`` with every known field checked (type, range; the model overrides against the
+    backbone's config). Unknown fields are kept (newer zoos may record more)."""
+    fit = dict(validate.mapping(fit, where=where))
+    for key, (lo, hi) in FIT_INTEGERS.items():
+        if key in fit:
+            validate.integer(fit[key], where=f"{where}.{key}", minimum=lo, maximum=hi)
+    backbone = validate.text(fit.get("backbone", "nerf"), where=f"{where}.backbone", choices=tuple(BACKBONES))
+    model = validate.mapping(fit.get("model", {}), where=f"{where}.model")
+    try:
+        config_from_dict(backbone, dict(model))
+    except ConfigError as err:
+        raise ConfigError(f"{where}.model: {err}") from None
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{where}.model: not a valid {backbone} configuration ({err})") from None
+    return fit
+
+
+def _entry(root: Path, index: Path, k: int, raw: Any, *, verify: bool) -> ZooEntry:
+    """Entry ``k`` of the manifest, typed and checked; its folder and files must stay inside ``root``."""
+    where = f"{index}: entries[{k}]"
+    raw = validate.mapping(raw, where=where)
+    missing = [key for key in ("name", "kind", "path", "files") if key not in raw]
+    if missing:
+        raise ConfigError(f"{where} lacks {', '.join(missing)}")
+    name = validate.text(raw["name"], where=f"{where}.name")
+    where = f"{index}: entry {name!r}"
+    kind = validate.text(raw["kind"], where=f"{where}: kind", choices=KINDS)
+    category = raw.get("category")
+    if kind == "category" or category is not None:
+        category = validate.text(category, where=f"{where}: category")
+    folder = validate.inside(root, raw["path"], where=f"{where}: path")
+    files = validate.mapping(raw["files"], where=f"{where}: files")
+    for file, digest in files.items():
+        path = validate.inside(folder, file, where=f"{where}: file")
         if verify:
-            for file, digest in files.items():
-                path = folder / file
-                if not path.is_file():
-                    raise ConfigError(f"{path}: listed in {index} but missing; restore the zoo (git checkout model_zoo) or rebuild it")
-                check_sha256(path, digest, index, "the file was changed or corrupted, refusing the zoo")
-        entries.append(ZooEntry(name, kind, folder, raw.get("category"), files, raw.get("config", {}), raw.get("metrics", {})))
-    if not entries:
-        raise ConfigError(f"{index}: lists no models")
-    return Zoo(root.resolve(), doc, tuple(entries), dict(doc.get("fit", {})))
+            if not path.is_file():
+                raise ConfigError(f"{path}: listed in {index} but missing; restore the zoo (git checkout model_zoo) or rebuild it")
+            check_sha256(path, digest, index, "the file was changed or corrupted, refusing the zoo")
+    config = validate.mapping(raw.get("config", {}), where=f"{where}: config")
+    metrics = validate.mapping(raw.get("metrics", {}), where=f"{where}: metrics")
+    return ZooEntry(name, kind, folder, category, dict(files), config, metrics)
 
 
 def open_zoo(zoo: str | os.PathLike | None) -> Zoo | None:

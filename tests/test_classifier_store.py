@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -120,6 +121,13 @@ def test_missing_classifier_option_says_what_to_pass():
         (lambda f: _truncate(f / WEIGHTS_FILE), "SHA-256"),
         (lambda f: _edit(f, lambda d: d["weights"].update(sha256="0" * 64)), "SHA-256"),
         (lambda f: _edit(f, lambda d: d.update(categories=["chair", "mug"])), "do not fit a resnet18 with 2 categories"),
+        (lambda f: _edit(f, lambda d: d.update(categories=["chair", "chair", "mug"])), "lists a name twice"),
+        (lambda f: _edit(f, lambda d: d["input"].update(size=10**6)), "must be an integer from 8 to 1024"),
+        (lambda f: _edit(f, lambda d: d["input"].update(size=True)), "must be an integer from 8 to 1024"),
+        (lambda f: _edit(f, lambda d: d["input"].update(background=[0.0, 1e30, 0.0])), "three values in \\[0, 1\\]"),
+        (lambda f: _edit(f, lambda d: d["unknown"].update(thresholds={"msp": float("nan")})), "must be finite"),
+        (lambda f: _edit(f, lambda d: d["unknown"].update(thresholds={"msp": "abc"})), "missing or malformed"),
+        (lambda f: _edit(f, lambda d: d["weights"].update(sha256=7)), "weights.sha256 must be a string"),
     ],
 )
 def test_damaged_folder_is_a_one_line_error(saved: Path, damage, message):
@@ -183,3 +191,62 @@ def test_half_precision_weights_halve_the_file_and_load_as_float32(tmp_path: Pat
     assert got.category == expected.category
     for c in CATS:
         assert got.probabilities[c] == pytest.approx(expected.probabilities[c], abs=2e-3)
+
+
+# --- --json-out paths that cannot be written: one line naming the path, exit 2, nothing written --------
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda t: (t / "folder").mkdir() or t / "folder", "is a folder; give a file path"),
+        (lambda t: str(t / "new_folder") + "/", "names a folder; give a file path"),
+        (lambda t: (t / "afile").write_text("x") and t / "afile" / "answer.json", "is a file, not a folder"),
+        (lambda t: (t / "dangling").symlink_to(t / "nowhere") or t / "dangling", "is a symbolic link to a missing target"),
+        (lambda t: os.mkfifo(t / "pipe") or t / "pipe", "exists and is not a regular file"),  # never a real device here
+    ],
+)
+def test_json_out_that_cannot_be_written_is_refused_before_any_work(saved: Path, tmp_path: Path, capsys, make, message):
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+    target = make(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(target)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "--json-out" in lines[0] and message in lines[0] and "Traceback" not in captured.err, captured.err
+    assert captured.out == "" and sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_json_out_on_a_full_disk_is_one_line_and_leaves_nothing(saved: Path, tmp_path: Path, capsys, monkeypatch):
+    import errno
+
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+
+    def full(self: Path, data: bytes) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(tmp_path / "answer.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "answer.json: cannot write (No space left on device)" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clf", "scene"]
+
+
+@pytest.mark.parametrize("victim", ["scene/transforms_train.json", "clf/classifier.json", "scene/train/r_0.png"])
+def test_json_out_never_replaces_a_file_of_the_inputs(saved: Path, tmp_path: Path, capsys, victim: str):
+    from nerfmeta.cli import main
+    from nerfmeta.data.synthetic import write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene", n_train=2, n_test=1, size=8)
+    target = tmp_path / victim
+    before = target.read_bytes()
+    assert main(["classify", str(scene), "--classifier", str(saved), "--json-out", str(target)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "would replace a file of the input" in err[0]
+    assert target.read_bytes() == before

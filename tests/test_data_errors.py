@@ -135,7 +135,7 @@ def test_out_is_a_file(tmp_path: Path, tiny_scene: Path, capsys: pytest.CaptureF
     out.write_text("x")
     assert main(["inspect", str(tiny_scene), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "taken: --out exists and is not a folder" in err
+    assert err.count("\n") == 1 and "--out " in err and "taken: exists and is not a folder" in err
     assert out.read_text() == "x"
 
 

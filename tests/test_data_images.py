@@ -10,6 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from nerfmeta.data import images as images_mod
 from nerfmeta.data.images import (
@@ -149,7 +150,8 @@ def test_pixel_limit_checked_before_decoding(tmp_path: Path, monkeypatch: pytest
     def no_decode(*args: object, **kwargs: object) -> None:
         raise AssertionError("pixels decoded before the size check")
 
-    monkeypatch.setattr(images_mod.iio, "imread", no_decode)
+    monkeypatch.setattr(images_mod, "decode_array", no_decode)
+    monkeypatch.setattr(images_mod.Image.Image, "load", no_decode)
     with pytest.raises(SceneError, match=r"big\.png.*16x16.*limit"):
         read_image(tmp_path / "big.png", max_pixels=255)
 
@@ -160,3 +162,57 @@ def test_unreadable_and_missing_images_name_the_file(tmp_path: Path) -> None:
         read_image(tmp_path / "bad.png")
     with pytest.raises(SceneError, match=r"nope\.png: image file not found"):
         read_image(tmp_path / "nope.png")
+
+
+# --- every pixel mode converted, EXIF orientation honoured -------------------------------------
+
+
+def test_cmyk_jpeg_reads_as_its_rgb_colour_not_as_rgba(tmp_path: Path) -> None:
+    Image.new("CMYK", (16, 16), (0, 255, 255, 0)).save(tmp_path / "red.jpg", quality=95)  # pure red in CMYK
+    image = read_image(tmp_path / "red.jpg")
+    assert image.shape == (16, 16, 3)
+    assert (image - torch.tensor([1.0, 0.0, 0.0])).abs().max() < 3 / 255
+
+
+@pytest.mark.parametrize(("orientation", "turn"), [(1, 0), (3, 2), (6, -1), (8, 1)])
+def test_exif_orientation_is_applied_to_size_and_pixels(tmp_path: Path, orientation: int, turn: int) -> None:
+    stored = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3) * 10
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(stored).save(tmp_path / "o.png", exif=exif)  # PNG: exact pixels
+    shown = np.rot90(stored, k=turn)  # k=-1: a quarter turn clockwise, as orientation 6 asks
+    assert image_shape(tmp_path / "o.png") == shown.shape[:2]
+    torch.testing.assert_close(read_image(tmp_path / "o.png"), torch.from_numpy(shown.copy()).float() / 255, rtol=0, atol=0)
+
+
+def test_palette_transparency_becomes_alpha(tmp_path: Path) -> None:
+    image = Image.new("P", (2, 1))
+    image.putpalette([255, 0, 0, 0, 255, 0])
+    image.putpixel((1, 0), 1)
+    image.save(tmp_path / "p.png", transparency=0)  # palette entry 0 (red) is transparent
+    expected = torch.tensor([[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 1.0]]])
+    torch.testing.assert_close(read_image(tmp_path / "p.png"), expected, rtol=0, atol=0)
+
+
+def test_gray_and_rgb_transparency_keys_become_alpha(tmp_path: Path) -> None:
+    gray = Image.new("L", (2, 1), 10)
+    gray.putpixel((1, 0), 200)
+    gray.save(tmp_path / "l.png", transparency=200)
+    torch.testing.assert_close(read_image(tmp_path / "l.png")[..., 3], torch.tensor([[1.0, 0.0]]), rtol=0, atol=0)
+    rgb = Image.new("RGB", (2, 1), (1, 2, 3))
+    rgb.putpixel((0, 0), (9, 9, 9))
+    rgb.save(tmp_path / "c.png", transparency=(1, 2, 3))
+    torch.testing.assert_close(read_image(tmp_path / "c.png")[..., 3], torch.tensor([[1.0, 0.0]]), rtol=0, atol=0)
+
+
+def test_one_bit_image_reads_as_black_and_white(tmp_path: Path) -> None:
+    image = Image.new("1", (3, 1), 0)
+    image.putpixel((1, 0), 1)
+    image.save(tmp_path / "b.png")
+    torch.testing.assert_close(read_image(tmp_path / "b.png")[0, :, 0], torch.tensor([0.0, 1.0, 0.0]), rtol=0, atol=0)
+
+
+def test_modes_without_a_faithful_reading_are_refused(tmp_path: Path) -> None:
+    Image.new("F", (2, 1), 0.5).save(tmp_path / "f.tiff")
+    with pytest.raises(SceneError, match=r"f\.tiff: unsupported pixel mode F"):
+        read_image(tmp_path / "f.tiff")

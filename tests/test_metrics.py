@@ -180,3 +180,13 @@ def test_ssim_rejects_bad_inputs():
     with pytest.raises(TypeError, match="floating-point"):
         ssim(torch.zeros(20, 20, 3, dtype=torch.uint8), torch.zeros(20, 20, 3, dtype=torch.uint8))
     assert ssim(torch.rand(20, 20, 1), torch.rand(20, 20, 1), window=3, sigma=0.5).shape == ()
+
+
+def test_ssim_skip_reason_names_the_size_and_the_window() -> None:
+    from nerfmeta.metrics import ssim_skip_reason
+
+    assert ssim_skip_reason(11, 11) is None and ssim_skip_reason(32, 11) is None
+    assert "8x32 pixels, smaller than its 11x11 window" in ssim_skip_reason(32, 8)
+    assert ssim_skip_reason(8, 8, window=7) is None and ssim_skip_reason(6, 8, window=7) is not None
+    with pytest.raises(ValueError):  # the reason is exactly when ssim() would refuse
+        ssim(torch.rand(10, 12, 3), torch.rand(10, 12, 3))

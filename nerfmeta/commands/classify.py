@@ -30,16 +30,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from classifier.inputs import read_scene_views
     from classifier.store import classify_views, load_classifier
-    from nerfmeta.io import write_json
+    from nerfmeta.paths import check_output_file, write_output_json
 
+    json_out = (check_output_file(args.json_out, option="--json-out", inputs=(args.scene, args.classifier))
+                if args.json_out else None)  # before any work; never replaces a file of the inputs
     classifier = load_classifier(args.classifier, device=args.device)
     if args.score is not None:
         classifier = classifier.with_score(args.score)
     meta = classifier.meta
     views = read_scene_views(args.scene, size=meta.input_size, background=meta.background)
     doc = classify_views(classifier, views).to_json()
-    if args.json_out:
-        write_json(args.json_out, doc)
+    if json_out is not None:
+        write_output_json(json_out, doc, option="--json-out")
     json.dump(doc, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0

@@ -7,7 +7,16 @@ camera-to-world ``transform_matrix`` in the OpenGL convention. Intrinsics are
 ``camera_angle_y``, when present, sets ``fy`` the same way.
 
 nerfmeta's optional top-level keys (read from ``transforms_train.json``): ``near``, ``far`` (ray
-distances, default 2 and 6, the NeRF-synthetic convention), ``category`` and ``aabb``.
+distances), ``category`` and ``aabb``.
+
+Without ``near``/``far`` in the file (:func:`~nerfmeta.data.bounds.default_near_far`), the
+cameras give them as for nerfstudio scenes: with ``d`` the camera distances to the point their
+optical axes pass closest to, ``0.5 * min(d)`` and ``1.5 * max(d)``. When those lie within a
+factor 1.5 of NeRF-synthetic's 2 and 6 (cameras at its scale, as in lego: radius 4.03 gives
+2.02 / 6.05), the scene keeps exactly 2 and 6, so NeRF-synthetic scenes load as they always did;
+a scene at another scale (cameras 0.004 from a 0.002-unit object, or 4000 units away) gets the
+derived values, and the load-time normalisation then follows from them. Cameras that share no
+point of focus keep 2 and 6.
 
 Splits: the files' own; when there is no ``transforms_test.json``, every 8th training view
 (0, 8, 16, ...) is held out as the test split.
@@ -22,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nerfmeta.data.bounds import FAR_SYNTHETIC, NEAR_SYNTHETIC, default_near_far
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -42,8 +52,8 @@ from nerfmeta.errors import SceneError
 
 NAME = "blender"
 EXPECTS = "transforms_train.json (+ transforms_val.json, transforms_test.json) with camera_angle_x and frames"
-DEFAULT_NEAR = 2.0
-DEFAULT_FAR = 6.0
+DEFAULT_NEAR = NEAR_SYNTHETIC
+DEFAULT_FAR = FAR_SYNTHETIC
 
 
 def detect(path: Path) -> bool:
@@ -107,7 +117,11 @@ def load(path: Path, options: LoadOptions) -> Scene:
         holdout = HOLDOUT_EVERY_TEXT
 
     where = str(train_file)
-    near, far = near_far(head.get("near", DEFAULT_NEAR), head.get("far", DEFAULT_FAR), where=where)
+    if "near" in head or "far" in head:
+        near, far = near_far(head.get("near", DEFAULT_NEAR), head.get("far", DEFAULT_FAR), where=where)
+        near_far_source = "from file"
+    else:
+        near, far, near_far_source = default_near_far(np.stack(poses))
     aabb = parse_aabb(head["aabb"], where=where) if "aabb" in head else None
     category = parse_category(head.get("category"), where=where)
 
@@ -134,4 +148,6 @@ def load(path: Path, options: LoadOptions) -> Scene:
         aabb=aabb,
         category=category,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
+        where=str(train_file),
+        near_far_source=near_far_source,
     )

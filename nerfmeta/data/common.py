@@ -28,6 +28,7 @@ from nerfmeta.data.images import (
     to_float_images,
 )
 from nerfmeta.data.normalize import normalization_for
+from nerfmeta.data.ranges import check_depth_range, check_geometry, check_intrinsics
 from nerfmeta.data.scene import Normalization, Scene
 from nerfmeta.errors import ConfigError, SceneError
 
@@ -64,16 +65,26 @@ class LoadOptions:
 # --- files -------------------------------------------------------------------------------------
 
 
+MAX_JSON_BYTES = 256 << 20
+"""Largest scene JSON file read (a transforms.json of 100k frames is about 50 MB)."""
+
+
 def read_json(path: Path) -> dict[str, Any]:
-    """A JSON object from ``path``; SceneError when missing, unreadable, invalid or not an object."""
+    """A JSON object from ``path``; SceneError when missing, unreadable, over :data:`MAX_JSON_BYTES`,
+    invalid, nested too deeply for the parser, or not an object."""
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
     try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise SceneError(f"{path}: {size / 2**20:.0f} MiB is too large for a scene file (limit {MAX_JSON_BYTES >> 20} MiB)")
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
         raise SceneError(f"{path}: cannot read file ({err})") from err
     except json.JSONDecodeError as err:
         raise SceneError(f"{path}: invalid JSON at line {err.lineno} column {err.colno}: {err.msg}") from err
+    except RecursionError:
+        raise SceneError(f"{path}: JSON nested too deeply to be a scene file") from None
     if not isinstance(doc, dict):
         raise SceneError(f"{path}: expected a JSON object at the top level, got {type(doc).__name__}")
     return doc
@@ -139,6 +150,8 @@ def check_pose(matrix: Any, *, where: str) -> np.ndarray:
     if np.abs(pose[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
         raise SceneError(f"{where}: pose bottom row must be [0, 0, 0, 1], got {pose[3].tolist()}")
     rot = pose[:3, :3]
+    if np.abs(rot).max() > 1.0 + ROTATION_TOLERANCE:  # before the product, which would overflow for huge entries
+        raise SceneError(f"{where}: pose is not rigid (rotation entry {float(np.abs(rot).max()):g} outside [-1, 1])")
     err = float(np.abs(rot.T @ rot - np.eye(3)).max())
     if err > ROTATION_TOLERANCE:
         raise SceneError(f"{where}: pose is not rigid (rotation not orthonormal, error {err:.3g})")
@@ -237,6 +250,25 @@ def check_image_sizes(paths: Sequence[Path], max_pixels: int) -> tuple[int, int]
     return first
 
 
+def memory_limit_bytes() -> int:
+    """This machine's physical memory: a scene whose images need more cannot be loaded."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # not a POSIX system: no limit known
+        return 1 << 62
+
+
+def check_stack_memory(n: int, height: int, width: int, factor: float, *, where: str) -> None:
+    """Refuse, before anything is decoded, ``n`` views of ``height`` x ``width`` whose float32 stack
+    (RGB + alpha, after downscaling by ``factor``) would not fit in :func:`memory_limit_bytes`."""
+    out_h, out_w = downscaled_size(height, width, factor)
+    need = n * out_h * out_w * 4 * 4
+    limit = memory_limit_bytes()
+    if need > limit:
+        raise SceneError(f"{where}: {n} views of {width}x{height} need {need / 2**20:,.0f} MiB loaded, more than this "
+                         f"machine's {limit / 2**20:,.0f} MiB of memory (use --downscale or fewer views)")
+
+
 def stack_views(
     batches: Iterable[tuple[torch.Tensor, int]], n: int, height: int, width: int, options: LoadOptions, factor: float
 ) -> ViewStack:
@@ -278,6 +310,7 @@ def read_views(paths: Sequence[Path], options: LoadOptions, *, downscale: float 
     """
     factor = options.downscale if downscale is None else downscale
     height, width = check_image_sizes(paths, options.max_pixels)
+    check_stack_memory(len(paths), height, width, factor, where=str(paths[0].parent))
 
     def batches() -> Iterator[tuple[torch.Tensor, int]]:
         for start in range(0, len(paths), READ_CHUNK):
@@ -326,6 +359,8 @@ def build_scene(
     aabb: torch.Tensor | None = None,
     category: str | None = None,
     image_names: Sequence[str] = (),
+    where: str | None = None,
+    near_far_source: str = "from file",
 ) -> Scene:
     """Assemble a :class:`Scene`, computing bounds from the camera frusta unless ``aabb`` is given.
 
@@ -333,13 +368,21 @@ def build_scene(
     off, the scene is then moved into range by :func:`~nerfmeta.data.normalize.normalization_for`
     (the identity for scenes already in range) and the transform is kept in ``Scene.normalization``.
 
+    Numbers that are finite but out of proportion (:mod:`nerfmeta.data.ranges`) are refused first.
+
     Args:
         intrinsics: (n, 4) ``(fx, fy, cx, cy)`` for the images as read (after downscaling).
+        where: the file to name in errors (default ``source``).
+        near_far_source: where ``near``/``far`` came from (see :class:`Scene`).
     """
     poses_t = torch.as_tensor(np.asarray(poses), dtype=torch.float64)
     n = views.images.shape[0]
     if poses_t.shape != (n, 4, 4) or intrinsics.shape != (n, 4):
         raise ValueError(f"{n} views but poses {tuple(poses_t.shape)}, intrinsics {tuple(intrinsics.shape)}")
+    where = str(source) if where is None else where
+    check_depth_range(near, far, where=where)
+    check_intrinsics(intrinsics, views.height, views.width, where=where)
+    check_geometry(poses_t, far, aabb, where=where)
     if not splits.get("train"):
         raise SceneError(f"{source}: no training views (a scene needs at least 2 views)")
     if aabb is None:
@@ -368,4 +411,5 @@ def build_scene(
         image_names=tuple(image_names),
         downscale=float(downscale),
         normalization=norm,
+        near_far_source=near_far_source,
     )

@@ -4,9 +4,16 @@ Images are handled as float32 tensors in [0, 1]: ``(H, W, 3)`` RGB or ``(H, W, 4
 (straight, not premultiplied, alpha). Grayscale is expanded to RGB. 8-bit values are divided by
 255 and 16-bit values by 65535.
 
-Files are read with imageio's Pillow plugin (PNG and JPEG). Known limit: Pillow reads 16-bit
-*colour* PNGs as 8-bit (it keeps the high byte), so those come back correctly scaled but with
-8-bit precision; a warning is logged. 16-bit grayscale PNGs keep their full precision.
+Files are opened with Pillow, which reads the header (size, mode, EXIF) without decoding the
+pixels. Every pixel mode is converted explicitly (:func:`pixel_array`): 1-bit, grayscale (8 and
+16 bit), grayscale + alpha, palette (with its transparency), RGB, RGBA, CMYK and YCbCr; a
+transparency key (PNG ``tRNS``) becomes an alpha channel; EXIF orientation is applied, so sizes
+and pixels are those a viewer shows (a pose tool that ignored the tag saw the other size; the
+parsers' size checks, LLFF's aspect and nerfstudio's ``w``/``h``, then refuse the scene rather than
+fit it on its side). Other modes (32-bit integer or float images) are refused.
+Known limit: Pillow reads 16-bit *colour* PNGs as 8-bit (it keeps the high byte), so those come
+back correctly scaled but with 8-bit precision; a warning is logged. 16-bit grayscale PNGs keep
+their full precision.
 """
 
 from __future__ import annotations
@@ -14,13 +21,14 @@ from __future__ import annotations
 import logging
 import os
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
+from PIL import Image, ImageOps
 
 from nerfmeta.errors import SceneError
 
@@ -28,31 +36,69 @@ log = logging.getLogger(__name__)
 
 DEFAULT_MAX_PIXELS = 64_000_000
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+EXIF_ORIENTATION = 0x0112
+TRANSPOSING_ORIENTATIONS = (5, 6, 7, 8)
+"""EXIF orientations that turn the picture by 90 degrees (the shown size is the stored one transposed)."""
+DIRECT_MODES = ("L", "LA", "RGB", "RGBA", "I;16", "I;16L", "I;16B", "I;16N")
+"""Pillow modes whose pixels are used as stored (8-bit, or 16-bit grayscale)."""
+CONVERTED_MODES = {"1": "L", "P": "RGB", "PA": "RGBA", "La": "LA", "RGBa": "RGBA", "RGBX": "RGB", "CMYK": "RGB",
+                   "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB"}
+"""Pillow modes converted to an 8-bit mode before use (a palette becomes its colours, CMYK its RGB)."""
 
 
-def image_shape(path: str | os.PathLike) -> tuple[int, int]:
-    """``(height, width)`` of an image file, read from its header without decoding the pixels.
+@contextmanager
+def _pillow_warnings_logged(path: Path) -> Iterator[None]:
+    """Pillow's warnings about a damaged file (corrupt EXIF, ...) logged at INFO instead of printed;
+    its decompression-bomb warning dropped (nerfmeta applies its own pixel limit before decoding)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        yield
+    for w in caught:
+        log.info("%s: %s", path, w.message)
 
-    Raises:
-        SceneError: the file is missing or is not an image imageio can open.
-    """
-    path = Path(path)
+
+@contextmanager
+def _open(path: Path) -> Iterator[Image.Image]:
+    """The image at ``path`` opened lazily (header only); one-line SceneError for anything unreadable."""
     if not path.is_file():
         raise SceneError(f"{path}: image file not found")
     try:
-        with warnings.catch_warnings():
-            # nerfmeta applies its own pixel limit (check_pixel_limit) right after this call
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            props = iio.improps(path, index=0, plugin="pillow")
-    except Exception as err:  # imageio/Pillow raise many types for a bad file
-        if isinstance(err, Image.DecompressionBombError) or isinstance(err.__cause__, Image.DecompressionBombError):
-            bomb = err if isinstance(err, Image.DecompressionBombError) else err.__cause__
-            raise SceneError(f"{path}: image is too large to open safely ({_short(bomb)})") from err
+        with _pillow_warnings_logged(path):
+            image = Image.open(path)
+    except Image.DecompressionBombError as err:
+        raise SceneError(f"{path}: image is too large to open safely ({_short(err)})") from err
+    except Exception as err:  # Pillow raises many types for a bad file
         raise SceneError(f"{path}: not a readable PNG or JPEG image ({_short(err)})") from err
-    shape = tuple(int(s) for s in props.shape)
-    if len(shape) not in (2, 3) or min(shape[:2]) < 1:
-        raise SceneError(f"{path}: not a 2-D image (array shape {shape})")
-    return shape[0], shape[1]
+    with image:
+        yield image
+
+
+def _orientation(image: Image.Image) -> int:
+    """The EXIF orientation tag (1 = as stored) of an opened image; 1 for a damaged EXIF block."""
+    with _pillow_warnings_logged(Path(getattr(image, "filename", "") or "image")):
+        try:
+            value = image.getexif().get(EXIF_ORIENTATION, 1)
+        except Exception:  # a damaged EXIF block: show the pixels as stored
+            value = 1
+    return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+def image_shape(path: str | os.PathLike) -> tuple[int, int]:
+    """``(height, width)`` of an image file as shown (EXIF orientation applied), from its header
+    without decoding the pixels.
+
+    Raises:
+        SceneError: the file is missing or is not an image Pillow can open.
+    """
+    path = Path(path)
+    with _open(path) as image:
+        width, height = image.size
+        if _orientation(image) in TRANSPOSING_ORIENTATIONS:
+            width, height = height, width
+    if min(height, width) < 1:
+        raise SceneError(f"{path}: not a 2-D image (size {width}x{height})")
+    return int(height), int(width)
 
 
 def check_pixel_limit(path: str | os.PathLike, height: int, width: int, max_pixels: int) -> None:
@@ -92,15 +138,48 @@ def decode_image(path: Path) -> torch.Tensor:
 
 
 def decode_array(path: Path) -> np.ndarray:
-    """The pixels of an image file as imageio decodes them (no conversion, no size check)."""
+    """The pixels of an image file, oriented as EXIF says and converted by :func:`pixel_array`
+    (no size check: the caller checked the header)."""
     if _is_16bit_colour_png(path):
         log.warning("%s: 16-bit colour PNG read with 8-bit precision (Pillow limitation)", path)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # size checked by the caller
-            return np.asarray(iio.imread(path, index=0, plugin="pillow"))
-    except Exception as err:  # imageio/Pillow raise many types for a bad file
-        raise SceneError(f"{path}: cannot decode image ({_short(err)})") from err
+    with _open(path) as image:
+        try:
+            with _pillow_warnings_logged(path):  # the size was checked by the caller
+                image.load()
+                if _orientation(image) != 1:
+                    image = ImageOps.exif_transpose(image)
+                return pixel_array(image, name=str(path))
+        except SceneError:
+            raise
+        except Exception as err:  # Pillow raises many types for a bad file
+            raise SceneError(f"{path}: cannot decode image ({_short(err)})") from err
+
+
+def pixel_array(image: Image.Image, *, name: str = "image") -> np.ndarray:
+    """A decoded Pillow image as a uint8 or uint16 array (H, W), (H, W, 2|3|4) for :func:`to_float_image`.
+
+    A transparency key (``image.info["transparency"]``: palette entries or a colour) becomes an
+    alpha channel; other modes are converted as :data:`CONVERTED_MODES` says.
+
+    Raises:
+        SceneError: a mode that has no faithful 8- or 16-bit reading (32-bit integer or float).
+    """
+    mode = image.mode
+    if "transparency" in image.info and mode in ("1", "L", "P", "RGB"):
+        image = image.convert("LA" if mode in ("1", "L") else "RGBA")
+    elif mode in CONVERTED_MODES:
+        image = image.convert(CONVERTED_MODES[mode])
+    elif mode == "I":  # older Pillow reads 16-bit grayscale PNGs as 32-bit integers
+        array = np.asarray(image)
+        if array.size and (array.min() < 0 or array.max() > 65535):
+            raise SceneError(f"{name}: 32-bit integer pixels outside the 16-bit range are not supported")
+        return array.astype(np.uint16)
+    elif mode not in DIRECT_MODES:
+        raise SceneError(f"{name}: unsupported pixel mode {mode} (expected 1-bit, 8- or 16-bit gray, palette, RGB(A) or CMYK)")
+    array = np.array(image)  # a writable copy (torch.from_numpy warns on Pillow's read-only buffer)
+    if array.dtype.kind == "u" and array.dtype.itemsize == 2:
+        array = array.astype(np.uint16)  # big-endian 16-bit to native
+    return array
 
 
 def to_float_image(array: np.ndarray, *, name: str = "image") -> torch.Tensor:
@@ -121,9 +200,9 @@ def to_float_image(array: np.ndarray, *, name: str = "image") -> torch.Tensor:
     elif array.dtype == np.bool_:
         image = torch.from_numpy(array.astype(np.float32))
     elif np.issubdtype(array.dtype, np.floating):
-        image = torch.from_numpy(array.astype(np.float32))
-        if not bool(torch.isfinite(image).all()) or image.min() < 0.0 or image.max() > 1.0:
+        if not bool(np.isfinite(array).all()) or array.min() < 0.0 or array.max() > 1.0:  # before a cast that could overflow
             raise SceneError(f"{name}: float pixel values must be finite and within [0, 1]")
+        image = torch.from_numpy(array.astype(np.float32))
     else:
         raise SceneError(f"{name}: unsupported pixel type {array.dtype} (expected 8- or 16-bit)")
     channels = image.shape[-1]

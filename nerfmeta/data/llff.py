@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfmeta.data.arrays import npy_header
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -38,6 +39,8 @@ NAME = "llff"
 EXPECTS = "poses_bounds.npy (N x 17) with images/ or images_N/"
 FILE_NAME = "poses_bounds.npy"
 ASPECT_TOLERANCE = 0.02
+MAX_SIDE = 1e6
+"""Largest image side (pixels) a poses_bounds.npy row may describe."""
 
 
 def detect(path: Path) -> bool:
@@ -73,6 +76,9 @@ def _image_folder(path: Path, downscale: float) -> tuple[Path, float]:
 def load(path: Path, options: LoadOptions) -> Scene:
     """Read an LLFF scene folder (see the module docstring)."""
     file = path / FILE_NAME
+    declared = npy_header(file).shape  # checked before reading: a forged header cannot make us allocate
+    if len(declared) != 2 or declared[1] != 17 or declared[0] < 1:
+        raise SceneError(f"{file}: expected an (N, 17) array, got shape {declared}")
     try:
         data = np.load(file, allow_pickle=False)
     except (OSError, ValueError) as err:
@@ -88,6 +94,8 @@ def load(path: Path, options: LoadOptions) -> Scene:
     hwf = mats[:, :, 4]
     if (hwf <= 0).any():
         raise SceneError(f"{file}: image height, width and focal (column 5) must be > 0")
+    if (hwf[:, :2] < 1).any() or (hwf[:, :2] > MAX_SIDE).any():
+        raise SceneError(f"{file}: image height and width (column 5) must be between 1 and {MAX_SIDE:g} pixels")
     poses = llff_to_opengl(mats[:, :, :4])
     for k, pose in enumerate(poses):
         check_pose(pose, where=f"{file}: view {k}")
@@ -125,4 +133,6 @@ def load(path: Path, options: LoadOptions) -> Scene:
         options=options,
         downscale=options.downscale,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
+        where=str(file),
+        near_far_source="from file (0.9 x nearest and 1.1 x farthest depth bound)",
     )

@@ -10,7 +10,7 @@ and equirectangular cameras are refused. Poses are OpenGL camera-to-world ``tran
 Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
 
 ``near``/``far``: the top-level keys when present. Otherwise a heuristic (see
-:func:`near_far_from_cameras`): the point the optical axes pass closest to (least squares) is
+:func:`~nerfmeta.data.bounds.near_far_from_cameras`): the point the optical axes pass closest to (least squares) is
 taken as the centre of interest, and with ``d`` the camera distances to it,
 ``near = 0.5 * min(d)`` and ``far = 1.5 * max(d)`` (which gives 2 and 6 for NeRF-synthetic
 cameras at radius 4). When the cameras do not look at a common point (e.g. forward-facing
@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nerfmeta.data.bounds import near_far_from_cameras
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
@@ -59,34 +60,6 @@ DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 def detect(path: Path) -> bool:
     """True for a folder holding ``transforms.json``."""
     return path.is_dir() and (path / FILE_NAME).is_file()
-
-
-def near_far_from_cameras(poses: np.ndarray) -> tuple[float, float] | None:
-    """Guess ``(near, far)`` from inward-looking cameras, or None when they share no focus.
-
-    The centre of interest ``c`` minimises the summed squared distance to the cameras' optical
-    axes. With ``d_i = |o_i - c|``: ``near = 0.5 * min(d)``, ``far = 1.5 * max(d)``. Returns None
-    when the axes are nearly parallel or ``c`` lies behind the cameras.
-
-    Args:
-        poses: (n, 4, 4) camera-to-world (OpenGL: the camera looks along -z).
-    """
-    origins = poses[:, :3, 3]
-    forward = -poses[:, :3, 2]
-    forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
-    proj = np.eye(3)[None] - forward[:, :, None] * forward[:, None, :]  # (n, 3, 3)
-    a = proj.sum(axis=0) / len(poses)
-    b = (proj @ origins[:, :, None]).sum(axis=0)[:, 0] / len(poses)
-    if np.linalg.eigvalsh(a).min() < 1e-2:
-        return None
-    centre = np.linalg.solve(a, b)
-    ahead = ((centre[None] - origins) * forward).sum(axis=-1)
-    if np.median(ahead) <= 0:
-        return None
-    dist = np.linalg.norm(origins - centre[None], axis=-1)
-    if dist.min() <= 0:
-        return None
-    return 0.5 * float(dist.min()), 1.5 * float(dist.max())
 
 
 def _get(frame: dict[str, Any], doc: dict[str, Any], key: str) -> Any:
@@ -163,6 +136,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         if "near" not in doc or "far" not in doc:
             raise SceneError(f"{where}: give both near and far, or neither")
         near, far = near_far(doc["near"], doc["far"], where=where)
+        near_far_source = "from file"
     else:
         guess = near_far_from_cameras(poses_np)
         if guess is None:
@@ -171,6 +145,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
                 "add top-level 'near' and 'far' keys"
             )
         near, far = guess
+        near_far_source = "derived from the cameras (not in the file): 0.5 x nearest and 1.5 x farthest camera distance to the point they look at"
     aabb = parse_aabb(doc["aabb"], where=where) if "aabb" in doc else None
     category = parse_category(doc.get("category"), where=where)
 
@@ -191,4 +166,6 @@ def load(path: Path, options: LoadOptions) -> Scene:
         aabb=aabb,
         category=category,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
+        where=str(file),
+        near_far_source=near_far_source,
     )

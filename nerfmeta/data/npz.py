@@ -2,35 +2,39 @@
 
 Arrays: ``images`` (N, H, W, 3) uint8 or float in [0, 1] (4 channels are composited as RGBA),
 ``poses`` (N, 4, 4) OpenGL camera-to-world, ``focal`` (scalar, pixels). Intrinsics are
-``(focal, focal, W/2, H/2)``, ``near``/``far`` are 2 and 6 (the tiny scene is the NeRF-synthetic
-lego), and every 8th view (0, 8, 16, ...) is held out as the test split.
+``(focal, focal, W/2, H/2)``, ``near``/``far`` come from the cameras as for a Blender file without
+them (:func:`~nerfmeta.data.bounds.default_near_far`: 2 and 6 for the tiny scene, which is the
+NeRF-synthetic lego), and every 8th view (0, 8, 16, ...) is held out as the test split.
 """
 
 from __future__ import annotations
 
+import math
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from nerfmeta.data.arrays import ArrayHeader, npz_headers
+from nerfmeta.data.bounds import default_near_far
 from nerfmeta.data.common import (
     HOLDOUT_EVERY_TEXT,
     LoadOptions,
     build_scene,
     check_pose,
+    check_stack_memory,
     every_nth_splits,
     finite_number,
     image_arrays_to_views,
     scale_intrinsics,
 )
+from nerfmeta.data.images import check_pixel_limit
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import SceneError
 
 NAME = "npz"
 EXPECTS = "a .npz file with images (N, H, W, 3), poses (N, 4, 4) and focal"
-NEAR = 2.0
-FAR = 6.0
 KEYS = ("images", "poses", "focal")
 
 
@@ -39,8 +43,29 @@ def detect(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() == ".npz"
 
 
+def check_declared_shapes(path: Path, headers: dict[str, ArrayHeader], max_pixels: int) -> None:
+    """Refuse missing arrays, wrong shapes and images over ``max_pixels`` from the headers alone."""
+    missing = [k for k in KEYS if k not in headers]
+    if missing:
+        raise SceneError(f"{path}: missing array(s) {', '.join(missing)} (needs {', '.join(KEYS)})")
+    images, poses, focal = (headers[k].shape for k in KEYS)
+    if len(images) != 4 or images[-1] not in (3, 4) or images[0] < 1:
+        raise SceneError(f"{path}: images must be (N, H, W, 3) with N >= 1, got shape {images}")
+    check_pixel_limit(f"{path}: images", images[1], images[2], max_pixels)
+    check_stack_memory(images[0], images[1], images[2], 1.0, where=f"{path}: images")
+    if poses != (images[0], 4, 4):
+        raise SceneError(f"{path}: poses must be (N, 4, 4) with N = {images[0]} images, got shape {poses}")
+    if math.prod(focal) != 1:
+        raise SceneError(f"{path}: focal must be a single number, got shape {focal}")
+
+
 def load(path: Path, options: LoadOptions) -> Scene:
-    """Read a tiny-NeRF ``.npz`` scene (see the module docstring)."""
+    """Read a tiny-NeRF ``.npz`` scene (see the module docstring).
+
+    The declared shapes are checked (from the ``.npy`` headers, see :mod:`nerfmeta.data.arrays`)
+    before any array is read.
+    """
+    check_declared_shapes(path, npz_headers(path), options.max_pixels)
     try:
         with np.load(path, allow_pickle=False) as archive:
             missing = [k for k in KEYS if k not in archive.files]
@@ -58,6 +83,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         raise SceneError(f"{path}: focal must be a single number, got shape {focal.shape}")
     f = finite_number(focal.reshape(()).item(), where=f"{path}: focal", positive=True)
 
+    near, far, near_far_source = default_near_far(checked)
     views = image_arrays_to_views(images, options, name=str(path))
     w0, h0 = views.source_width, views.source_height
     intrinsics = torch.tensor([[f, f, w0 / 2, h0 / 2]] * len(checked), dtype=torch.float64)
@@ -66,8 +92,8 @@ def load(path: Path, options: LoadOptions) -> Scene:
         views=views,
         poses=checked,
         intrinsics=intrinsics,
-        near=NEAR,
-        far=FAR,
+        near=near,
+        far=far,
         splits=every_nth_splits(len(checked)),
         holdout=HOLDOUT_EVERY_TEXT,
         source=path,
@@ -75,4 +101,6 @@ def load(path: Path, options: LoadOptions) -> Scene:
         options=options,
         downscale=options.downscale,
         image_names=[f"{path.name}[{k}]" for k in range(len(checked))],
+        where=str(path),
+        near_far_source=near_far_source,
     )

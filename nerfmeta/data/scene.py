@@ -90,6 +90,8 @@ class Scene:
         downscale: the factor the images were reduced by when read.
         normalization: the transform from the file's frame to the loaded one (poses, near, far
             and bounds are already transformed); the identity unless the loader applied one.
+        near_far_source: where ``near``/``far`` came from (the file, a format's default, or
+            derived from the cameras), for ``inspect`` and reports.
     """
 
     images: torch.Tensor
@@ -108,6 +110,7 @@ class Scene:
     image_names: tuple[str, ...] = field(default_factory=tuple)
     downscale: float = 1.0
     normalization: Normalization = field(default_factory=Normalization)
+    near_far_source: str = "from file"
 
     @property
     def n_views(self) -> int:

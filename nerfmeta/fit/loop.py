@@ -32,7 +32,7 @@ from nerfmeta.fields.base import Decision, RadianceModel
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
 from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
-from nerfmeta.metrics import mse_to_psnr
+from nerfmeta.metrics import mse_to_psnr, ssim_skip_reason
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def fit(
 
     def final_eval() -> EvalResult:
         t_eval = time.perf_counter()
-        result = evaluate_views(model, scene, list(test_views), background, with_ssim=config.final_ssim,
+        result = evaluate_views(model, scene, list(test_views), background, with_ssim=config.final_ssim and not ssim_skip,
                                 chunk=config.chunk_rays)
         state.eval_time_s += time.perf_counter() - t_eval
         state.last_test_psnr = result.psnr
@@ -262,6 +262,10 @@ def fit(
         notes = note_decisions(model.decide(lambda n: sampler.sample(n, probe), background=background))
         state.time_s += time.perf_counter() - t_decide  # part of the fit's work, like the steps
         return False, notes
+
+    ssim_skip = ssim_skip_reason(scene.height, scene.width) if config.final_ssim and test_views else None
+    if ssim_skip:  # decided before training, recorded in summary.json: the final evaluation must not fail
+        note_decisions([Decision("final_ssim", False, ssim_skip, {"height": scene.height, "width": scene.width})])
 
     guard = DivergenceGuard(config.guard, lr_scale=state.lr_guard_scale, events=state.guard_events)
     guard.retake(state.step, model, optimizer)
