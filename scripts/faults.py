@@ -394,11 +394,8 @@ def section_text(tallies: Sequence[Tally], seconds: float, args: argparse.Namesp
 
 
 def write_benchmarks(text: str) -> None:
-    try:  # the section writer may live in the package or beside the scripts
-        from nerfmeta.report.benchmarks import write_section
-    except ImportError:
-        sys.path.insert(0, str(ROOT / "scripts"))
-        from benchmarks import write_section  # type: ignore[no-redef]
+    from benchlib.sections import write_section  # beside this script (scripts/benchlib)
+
     write_section(ROOT / "BENCHMARKS.md", SECTION, text)
 
 

@@ -29,7 +29,7 @@ from nerfmeta.fields.registry import build_model, config_from_dict
 from nerfmeta.init import load_init, save_init
 from nerfmeta.fit.run import RunConfig, run_fit
 from nerfmeta.render.cameras import fibonacci_directions, look_at
-from nerfmeta.stress import MAX_PSNR_GAP, QUICK, transform_blender_scene
+from benchlib.stress import MAX_PSNR_GAP, QUICK, transform_blender_scene
 from nerfmeta.zoo import ZOO_FORMAT, load_zoo
 from fuzz_scenes import KINDS as FUZZ_KINDS, fuzz, llff_rows
 
