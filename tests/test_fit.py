@@ -165,7 +165,7 @@ def test_a_grid_started_at_any_initial_alpha_learns(tiny_scene, alpha):
 
     Test PSNR after 120 steps for alpha 1e-6, 1e-4 and 1e-2 (from 10.1, 10.1 and 11.9 dB): with the
     shared epsilon 1e-8 10.2, 24.8 and 27.3 dB (the 1e-6 grid barely moves); with
-    ``adam_eps_density`` 1e-15 19.6, 24.9 and 27.3 dB.
+    the density groups' declared epsilon 1e-15 (``DENSITY_ADAM_EPS``) 19.6, 24.9 and 27.3 dB.
     """
     from nerfmeta.fit.evaluate import evaluate_views
 

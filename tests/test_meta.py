@@ -22,7 +22,7 @@ from pretrain.meta import (
     learn2learn_available,
     maml_meta_grad,
     meta_wrapper,
-    photometric_mse,
+    task_loss,
     reptile_update,
     task_direction,
 )
@@ -103,7 +103,7 @@ def test_loss_drops_after_inner_steps():
     model, t = tiny_model(), task()
     learner = meta_wrapper(model, "torchfunc", 5.0, first_order=True).clone()
     adaptation = fast_adapt(t, learner, 4, background=BG, jitter=False)
-    after = float(photometric_mse(learner, t.support, BG, None, jitter=False).detach())
+    after = float(task_loss(learner, t.support, BG, None, jitter=False).detach())
     assert after < adaptation.support_mse[0]
     assert all(b < a for a, b in zip(adaptation.support_mse, adaptation.support_mse[1:]))
 

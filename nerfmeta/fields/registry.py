@@ -35,6 +35,12 @@ def config_from_dict(backbone: str, values: dict[str, Any]) -> Any:
     return cls(**fixed)
 
 
+def model_class(backbone: str) -> type[RadianceModel]:
+    """The model class of ``backbone`` (its capabilities, e.g. ``meta_hints``, are class attributes)."""
+    _check(backbone)
+    return BACKBONES[backbone][1]
+
+
 def build_model(backbone: str, config: Any, bounds: torch.Tensor, *, seed: int, device: torch.device | str = "cpu") -> RadianceModel:
     """Build a backbone with its initial weights drawn from ``seed`` (global RNG state untouched)."""
     _check(backbone)

@@ -317,7 +317,7 @@ def _optimizer_description(model, fit_config: FitConfig, frozen: Sequence[str]) 
     return {
         "name": "Adam",
         "eps": fit_config.adam_eps,
-        "eps_density": fit_config.adam_eps_density,
+        "eps_groups": {g.name: g.adam_eps for g in model.param_groups() if g.adam_eps is not None},
         "lr_groups": {g.name: g.lr for g in model.param_groups()},
         "lr_decay": f"exponential to x{fit_config.lr_decay:g} at the end of the iterations or time budget",
         "batch_rays": fit_config.batch_rays,
