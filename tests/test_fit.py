@@ -177,3 +177,41 @@ def test_a_grid_started_at_any_initial_alpha_learns(tiny_scene, alpha):
     result = fit(model, scene, FitConfig(iters=120, batch_rays=256, eval_every=0, lr_decay=1.0, final_ssim=False),
                  background=white)
     assert result.final.psnr > before + 5.0, (alpha, before, result.final.psnr)
+
+
+def test_optimizer_takes_the_epsilon_each_group_declares_not_its_name():
+    from nerfmeta.fields.base import ParamGroup
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+    from nerfmeta.fields.voxel_grid import DENSITY_ADAM_EPS
+    from nerfmeta.fit.loop import build_optimizer
+
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    config = FitConfig(adam_eps=1e-7)
+    grid = build_model("grid", config_from_dict("grid", {**vars_of(default_config("grid")), "num_voxels": 8**3,
+                                                         "coarse_num_voxels": 8**3}), box, seed=0)
+    eps = {g["name"]: g["eps"] for g in build_optimizer(grid, config).param_groups}
+    assert eps == {"density": DENSITY_ADAM_EPS, "features": 1e-7}
+
+    class Named(DenseGrid):  # a group merely *named* density declares nothing
+        def param_groups(self):
+            return [ParamGroup("density", ("grid",), 0.1)]
+
+    assert [g["eps"] for g in build_optimizer(Named(DenseGridConfig(side=4), box), config).param_groups] == [1e-7]
+
+
+def test_the_fit_loop_minimises_the_sum_of_the_models_named_terms(tiny_scene):
+    """A term the model adds (here a strong pull of the grid to 0) is minimised with the photometric one."""
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+
+    class Pulled(DenseGrid):
+        def loss_terms(self, out, target):
+            return {**super().loss_terms(out, target), "pull": 10.0 * self.grid.square().mean()}
+
+    scene = load_scene(tiny_scene)
+    sizes = {}
+    for cls in (DenseGrid, Pulled):
+        torch.manual_seed(0)
+        model = cls(DenseGridConfig(side=12), scene.bounds)
+        fit(model, scene, FitConfig(iters=30, batch_rays=128, eval_every=0, final_ssim=False), background=torch.ones(3))
+        sizes[cls.__name__] = float(model.grid.detach().square().mean())
+    assert sizes["Pulled"] < 0.5 * sizes["DenseGrid"], sizes
