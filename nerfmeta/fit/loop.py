@@ -19,7 +19,6 @@ with fresh rays, so ``iters`` counts good steps (the time of bad ones still coun
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
