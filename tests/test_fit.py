@@ -45,10 +45,16 @@ def test_fit_cli_writes_run_folder_and_psnr_rises(tiny_scene, tmp_path, backbone
     assert config["backbone"] == backbone and config["fit"]["iters"] == 90
 
 
-def _grid_run_config(scene, iters, checkpoint_every):
+RESUME_MODELS = {
+    "grid": {"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5},
+    "nerf": {"estimator": "occupancy", "depth": 2, "width": 16, "skips": [], "n_samples": 16, "occupancy_warmup": 3,
+             "occupancy_every": 4, "occupancy_resolution": 12},  # grid refreshes before and after the kill
+}
+
+
+def _grid_run_config(scene, iters, checkpoint_every, backbone="grid"):
     return RunConfig(
-        scene=str(scene), backbone="grid",
-        model={"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5},
+        scene=str(scene), backbone=backbone, model=RESUME_MODELS[backbone],
         fit=FitConfig(iters=iters, batch_rays=256, eval_every=0, checkpoint_every=checkpoint_every),
     )
 
@@ -57,10 +63,11 @@ class _Kill(Exception):
     pass
 
 
-def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path):
+@pytest.mark.parametrize("backbone", sorted(RESUME_MODELS))
+def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path, backbone):
     # uninterrupted
     full = tmp_path / "full"
-    run_fit(_grid_run_config(tiny_scene, 16, 4), full)
+    run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), full)
     # killed at iteration 10 (last checkpoint at 8), then resumed
     killed = tmp_path / "killed"
 
@@ -69,9 +76,9 @@ def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path):
             raise _Kill
 
     with pytest.raises(_Kill):
-        run_fit(_grid_run_config(tiny_scene, 16, 4), killed, callbacks=[kill_at_10])
+        run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), killed, callbacks=[kill_at_10])
     assert not (killed / "summary.json").exists()
-    run_fit(_grid_run_config(tiny_scene, 16, 4), killed, resume=True)
+    run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), killed, resume=True)
     from safetensors.torch import load_file
 
     a = load_file(str(full / "checkpoint.safetensors"))
