@@ -50,8 +50,15 @@ class PackedSamples:
                              self.delta.index_select(0, keep), self.far)
 
     def points(self, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-        """(M, 3) positions ``o + t d`` of the samples, from the rays' origins and directions (n_rays, 3)."""
-        return torch.addcmul(origins.index_select(0, self.ray_idx), self.t[:, None], directions.index_select(0, self.ray_idx))
+        """(M, 3) positions ``o + t d`` of the samples, from the rays' origins and directions (n_rays, 3).
+
+        Stored component-major (the (M, 3) result is the transpose of a contiguous (3, M) tensor):
+        a CPU gathers and updates long rows of one axis much faster than M rows of three values,
+        and elementwise maths on the points keeps that layout.
+        """
+        o = origins.t().contiguous().index_select(1, self.ray_idx)
+        d = directions.t().contiguous().index_select(1, self.ray_idx)
+        return torch.addcmul(o, self.t[None], d).t()
 
 
 def march_packed(
