@@ -154,14 +154,15 @@ class NerfMLP(RadianceModel):
     Note ``skips=(4,)`` concatenates the input before the fifth trunk layer (``trunk.4``); the
     official NeRF code's ``skips=[4]`` concatenates it one layer later (before ``trunk.5``).
 
-    Rendering (one pass over all given rays; the caller chunks): ``n_samples`` stratified
-    samples in ``[near, far]`` (jittered with ``generator`` when ``train``, bin midpoints
-    otherwise), ``tau = sigma * delta`` with ``delta`` in box units, then compositing on the
-    background. With ``n_importance > 0`` a second pass draws ``n_importance`` samples from the
+    Rendering (one pass over all given rays; the caller chunks), ``estimator="stratified"``:
+    ``n_samples`` stratified samples in ``[near, far]`` (jittered with ``generator`` when
+    ``train``, bin midpoints otherwise), ``tau = sigma * delta`` with ``delta`` in box units, then
+    the shared compositor on the background. With ``n_importance > 0`` a second pass draws ``n_importance`` samples from the
     first pass's weights and renders the sorted union of both sets, re-using the first pass's
     evaluations. Both passes use the *same* network (a common lightweight variant; the NeRF paper
     trains a separate coarse network); the first pass's colour is in ``extras["rgb_coarse"]`` so
-    a loss may supervise it too.
+    a loss may supervise it too. ``estimator="occupancy"``: the shared occupancy-grid estimator
+    picks the samples (see the module docstring) and the base class renders them.
 
     Layers for ``freeze_first(k)``, input to output: ``trunk.0 .. trunk.{depth-1}, density``
     and, with the view branch, ``feature, view.0``, then ``rgb``. So ``k <= depth`` freezes the
