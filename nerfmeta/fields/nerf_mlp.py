@@ -69,10 +69,10 @@ class NerfMLPConfig:
     """Where to sample: ``stratified`` (``n_samples`` (+ ``n_importance``) per ray, no state) or ``occupancy`` (march every ``2 / n_samples`` box units, skipping empty cells of an occupancy grid and samples behind opaque ones)."""
     occupancy_resolution: int = 64
     """``occupancy``: grid corners per axis over the box."""
-    occupancy_warmup: int = 256
-    """``occupancy``: steps before the first grid refresh (nothing is skipped until then)."""
-    occupancy_every: int = 64
-    """``occupancy``: steps between grid refreshes (each evaluates the density at every corner)."""
+    occupancy_warmup: int = 20
+    """``occupancy``: steps before the first grid refresh (nothing is skipped until then; on lego 100x100 20 steps at lr 5e-3 already carve the empty space: 1296 steps at 3.4 samples/ray in 90 s, against 50 steps at 34 with a 256-step warm-up)."""
+    occupancy_every: int = 32
+    """``occupancy``: steps between grid refreshes (each evaluates the density at every corner, without gradient)."""
     occupancy_thres: float = 0.01
     """``occupancy``: alpha over one marching step above which a corner stays occupied (nerfacc's ``occ_thre``)."""
     early_stop_eps: float = 1e-4
