@@ -40,7 +40,7 @@ from nerfmeta.collection.generate import Collection, SceneRecord, load_collectio
 from nerfmeta.data import load_scene
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError
-from nerfmeta.fields.registry import BACKBONES, build_model, config_from_dict, default_config
+from nerfmeta.fields.registry import BACKBONES, build_model, config_from_dict, default_config, model_class
 from nerfmeta.fit.loop import Callback, FitConfig, fit
 from nerfmeta.fit.checkpoint import save_checkpoint
 from nerfmeta.fit.run import MetricsWriter, read_metrics, resume_fit_state
@@ -92,11 +92,11 @@ class CategoryPretrainConfig:
             raise ConfigError(f"--backbone {self.backbone!r}: choose one of {', '.join(sorted(BACKBONES))}")
         values = {**dataclasses.asdict(default_config(self.backbone)), **self.model}
         config = config_from_dict(self.backbone, values)
-        growth = tuple(getattr(config, "growth_steps", ()))
-        last = getattr(config, "coarse_iters", 0) + max(growth, default=0)
-        if growth and self.fit.iters <= last:
-            raise ConfigError(f"--iters {self.fit.iters}: the grid grows until step {last} (coarse_iters + the last of "
-                              f"growth_steps {list(growth)}); train past it (--iters > {last}) or change --set growth_steps")
+        last = model_class(self.backbone).settles_at(config)
+        if last and self.fit.iters <= last:
+            raise ConfigError(f"--iters {self.fit.iters}: the {self.backbone} grows until step {last} (its parameters change "
+                              f"until then, e.g. the grid's coarse_iters + the last of growth_steps); train past it "
+                              f"(--iters > {last}) or change its schedule with --set")
         if scene is not None and hasattr(config, "for_scene"):
             config = config.for_scene(scene)
         return config
@@ -199,7 +199,7 @@ def saved_config(out: Path) -> CategoryPretrainConfig:
     path = out / "config.json"
     try:
         data = json.loads(path.read_text())
-        data["fit"] = FitConfig(**data.get("fit", {}))
+        data["fit"] = FitConfig.from_json(data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         return CategoryPretrainConfig(**data)
     except (OSError, ValueError, TypeError) as err:
@@ -297,7 +297,7 @@ def _train_category(out: Path, config: CategoryPretrainConfig, collection: Colle
             "lr_decay": f"exponential to x{config.fit.lr_decay:g} over {config.fit.iters} iterations",
             "batch_rays": config.fit.batch_rays,
         },
-        "recipe": RECIPE + (f", coarse_iters={model_config.coarse_iters}" if config.backbone == "grid" else ""),
+        "recipe": RECIPE + "".join(f", {key}={value}" for key, value in model.recipe_notes().items()),
     }
     plot_psnr_curves({f"{config.category} ({config.backbone})": records_out}, "iter", out / "psnr_vs_iter.png",
                      title=f"category model {config.category}: {len(records)} scenes, {config.backbone}")

@@ -20,23 +20,11 @@ after ``inner_steps`` SGD steps on the support rays and ``L_q`` the query MSE:
 
 MAML and FOMAML update ``theta`` with Adam (``meta_lr``); Reptile with the plain step above.
 
-Backbones and algorithms:
-
-==========  =========================  =====================================================
-backbone    algorithms                 why
-==========  =========================  =====================================================
-``nerf``    maml, fomaml, reptile      the MLP renders with smooth ops only, so the inner
-                                       gradient is itself differentiable (second order is
-                                       exact; tested).
-``grid``    fomaml, reptile            the feature grid is read with ``embedding_bag``, whose
-                                       backward has no derivative in PyTorch ("the derivative
-                                       for '_embedding_bag_backward' is not implemented"), and
-                                       a Hessian-vector product over a dense grid would cost
-                                       several times a first-order step anyway. The grid is
-                                       meta-learned in a fixed fine stage (no coarse stage, no
-                                       growth, no empty-space skipping) so its parameter set
-                                       never changes.
-==========  =========================  =====================================================
+Backbones and algorithms: what a backbone supports is declared by the backbone itself
+(:class:`~nerfmeta.fields.base.MetaHints`: its algorithms, the config values meta-learning forces so
+its parameter set never changes, its default size and inner rates); this module never tests a
+backbone's name. The NeRF MLP supports all three (its forward is smooth, so second order is exact;
+tested); the voxel grid first order only, in one fixed fine stage.
 
 Engines (``MetaConfig.engine``): ``torchfunc`` (default) renders a parameter dict with
 ``torch.func.functional_call`` and takes inner and outer gradients with ``torch.autograd.grad``
@@ -64,50 +52,14 @@ from torch.func import functional_call
 
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
-from nerfmeta.fields.base import RadianceModel
-from nerfmeta.fields.registry import BACKBONES, config_from_dict, default_config
+from nerfmeta.fields.base import MetaHints, RadianceModel, total_loss
+from nerfmeta.fields.registry import BACKBONES, config_from_dict, default_config, model_class
 from nerfmeta.fit.guard import GuardConfig
 
 ALGOS = ("maml", "fomaml", "reptile")
 ENGINES = ("torchfunc", "l2l")
-SUPPORTED_ALGOS: dict[str, tuple[str, ...]] = {"nerf": ("maml", "fomaml", "reptile"), "grid": ("fomaml", "reptile")}
-"""Algorithms each backbone can be meta-trained with (see the module docstring for why)."""
-
-WHY_NOT: dict[tuple[str, str], str] = {
-    ("grid", "maml"): "--algo maml needs second-order gradients, which the grid backbone does not support "
-    "(its feature-grid lookup, embedding_bag, has no double backward in PyTorch, and grid Hessian-vector "
-    "products would be very costly); use --algo fomaml or --algo reptile",
-}
-
-GRID_FIXED_STAGE: dict[str, Any] = {"coarse_iters": 0, "growth_steps": (), "empty_space_skipping": False, "occupancy_every": 0}
-"""Grid settings forced for meta-learning: one fixed fine stage, so the parameter set never changes."""
-
-META_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
-    "nerf": {"pos_freqs": 6, "depth": 4, "width": 64, "skips": (2,), "n_samples": 32},
-    "grid": {"num_voxels": 40**3, "feature_dim": 6, "mlp_width": 32, "mlp_depth": 2,
-             "view_dependent": True},  # fixed: "auto" would add the MLP mid-fit, changing the parameter set
-}
-"""Backbone overrides used unless ``MetaConfig.model`` says otherwise: sized so a meta-step over a
-few tasks takes seconds on a 2-core CPU (the grid fine stage's own defaults are for one scene)."""
-
-INNER_LR_DEFAULTS: dict[str, tuple[float, dict[str, float]]] = {
-    "nerf": (30.0, {}),
-    "grid": (10.0, {"density": 1e5, "features": 3e4}),
-}
-"""Inner SGD rates per backbone: (rate of every parameter, rates of named parameter groups).
-
-For the MLP, 30 gave the best held-out adaptation with Reptile on a 6-category 32 px collection
-(+3.2 dB in 3 steps after 300 meta-steps; 10 learned more slowly) and stayed finite with MAML and
-FOMAML.
-
-The loss is a mean over the support rays, so a voxel's gradient is tiny (each voxel is touched by
-few of the rays): the grids need rates ~1e4 times the decoder MLP's. The group figures are for
-:data:`GROUP_LR_RAYS` support rays and are scaled in proportion to ``support_rays`` (rates given
-explicitly are used as given); measured on a 16-32 px collection, where they lower the support
-MSE several-fold in 8 steps without diverging."""
-
 GROUP_LR_RAYS = 512
-"""Support-batch size the default group rates of :data:`INNER_LR_DEFAULTS` are quoted for."""
+"""Support-batch size the default group rates of a backbone's ``MetaHints.inner_group_lr`` are quoted for."""
 
 CANONICAL_BOUNDS = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 """The box of every meta-learned model: generated collections put each object in [-1, 1]^3, so one
@@ -119,7 +71,7 @@ class MetaConfig:
     """Everything that defines a meta-training run; saved as ``config.json`` beside it."""
 
     backbone: str = "nerf"
-    """Backbone to meta-learn: ``nerf`` (MLP; maml, fomaml, reptile) or ``grid`` (fomaml, reptile)."""
+    """Backbone to meta-learn: ``nerf`` (MLP; maml, fomaml, reptile) or ``grid`` (fomaml, reptile); see its ``meta_hints``."""
     model: dict[str, Any] = field(default_factory=dict)
     """Backbone config overrides (JSON form) on top of the meta-learning defaults for that backbone."""
     algo: str = "reptile"
@@ -129,7 +81,7 @@ class MetaConfig:
     inner_steps: int = 3
     """SGD steps on a task's support rays in the inner loop."""
     inner_lr: float | None = None
-    """Inner SGD rate of every parameter; unset: 30 for nerf, 10 for the grid's MLP (see INNER_LR_DEFAULTS)."""
+    """Inner SGD rate of every parameter; unset: the backbone's ``meta_hints.inner_lr`` (30 for nerf, 10 for the grid's MLP)."""
     inner_lr_groups: dict[str, float] = field(default_factory=dict)
     """Inner SGD rates of named parameter groups over the defaults (grid: density=1e5, features=3e4, times support_rays/512)."""
     meta_lr: float | None = None
@@ -172,7 +124,8 @@ class MetaConfig:
     @property
     def inner_lr_resolved(self) -> tuple[float, dict[str, float]]:
         """(inner rate of every parameter, rates of named groups) with the backbone defaults filled in."""
-        lr, groups = INNER_LR_DEFAULTS.get(self.backbone, (30.0, {}))
+        hints = self.hints()
+        lr, groups = hints.inner_lr, hints.inner_group_lr
         scale = self.support_rays / GROUP_LR_RAYS  # a voxel's share of a mean loss shrinks with the batch
         groups = {name: value * scale for name, value in groups.items()}
         return (lr if self.inner_lr is None else float(self.inner_lr)), {**groups, **self.inner_lr_groups}
@@ -192,8 +145,10 @@ class MetaConfig:
             raise ConfigError(f"unknown --algo {self.algo!r}; choose one of {', '.join(ALGOS)}")
         if self.engine not in ENGINES:
             raise ConfigError(f"unknown --engine {self.engine!r}; choose one of {', '.join(ENGINES)}")
-        if self.algo not in SUPPORTED_ALGOS.get(self.backbone, ALGOS):
-            raise ConfigError(WHY_NOT.get((self.backbone, self.algo), f"--algo {self.algo} is not supported for --backbone {self.backbone}"))
+        hints = self.hints()
+        if self.algo not in hints.algos:
+            raise ConfigError(hints.why_not or f"--algo {self.algo} is not supported for --backbone {self.backbone}; "
+                              f"use one of {', '.join(hints.algos)}")
         positive = (("--inner-steps", self.inner_steps), ("--meta-batch", self.meta_batch), ("--support-rays", self.support_rays),
                     ("--query-rays", self.query_rays), ("--meta-steps", self.meta_steps))
         for name, value in positive:
@@ -213,21 +168,25 @@ class MetaConfig:
             raise ConfigError(f"background {self.background!r}: must be three values in [0, 1]")
         self.model_config()
 
-    def model_config(self) -> Any:
-        """The backbone config: its defaults, the meta-learning defaults, then ``model`` overrides.
-
-        For the grid the fixed-stage settings (:data:`GRID_FIXED_STAGE`) are forced; an override
-        that contradicts them is an error.
-        """
+    def hints(self) -> MetaHints:
+        """What the backbone declares about meta-learning (:class:`~nerfmeta.fields.base.MetaHints`)."""
         if self.backbone not in BACKBONES:
             raise ConfigError(f"unknown backbone {self.backbone!r}; choose one of {', '.join(BACKBONES)}")
-        values = {**dataclasses.asdict(default_config(self.backbone)), **META_MODEL_DEFAULTS.get(self.backbone, {}), **self.model}
-        if self.backbone == "grid":
-            for key, forced in GRID_FIXED_STAGE.items():
-                if key in self.model and _plain(self.model[key]) != _plain(forced):
-                    raise ConfigError(f"--set {key}={self.model[key]!r}: meta-learning uses the grid in one fixed fine stage "
-                                      f"({', '.join(f'{k}={_plain(v)}' for k, v in GRID_FIXED_STAGE.items())})")
-            values.update(GRID_FIXED_STAGE)
+        return model_class(self.backbone).meta_hints
+
+    def model_config(self) -> Any:
+        """The backbone config: its defaults, its meta-learning defaults, then ``model`` overrides.
+
+        The values the backbone fixes for meta-learning (``MetaHints.fixed``, e.g. the grid's one
+        fixed fine stage) are forced; an override that contradicts them is an error.
+        """
+        hints = self.hints()
+        values = {**dataclasses.asdict(default_config(self.backbone)), **hints.model_defaults, **self.model}
+        for key, forced in hints.fixed.items():
+            if key in self.model and _plain(self.model[key]) != _plain(forced):
+                raise ConfigError(f"--set {key}={self.model[key]!r}: {hints.fixed_reason} "
+                                  f"({', '.join(f'{k}={_plain(v)}' for k, v in hints.fixed.items())})")
+        values.update(hints.fixed)
         return config_from_dict(self.backbone, values)
 
     @staticmethod
@@ -433,11 +392,12 @@ def meta_wrapper(model: RadianceModel, engine: str, lrs: dict[str, float] | floa
 # The inner loop and the meta-gradients
 
 
-def photometric_mse(learner: Learner | nn.Module, rays: RayBatch, background: torch.Tensor, generator: torch.Generator | None,
-                    jitter: bool = True) -> torch.Tensor:
-    """Mean squared error (a scalar) of the learner's render of ``rays`` (n_rays) against ``rays.target``."""
-    out = learner(rays, background=background, train=jitter, generator=generator)
-    return torch.mean((out.rgb - rays.target) ** 2)
+def task_loss(learner: Learner | nn.Module, rays: RayBatch, background: torch.Tensor, generator: torch.Generator | None,
+              jitter: bool = True) -> torch.Tensor:
+    """The model's loss (a scalar) on ``rays`` (n_rays) against ``rays.target``: the sum of its named terms,
+    as the fit loop sums them (the photometric MSE, plus e.g. the grid's TV when its weight is set)."""
+    out = learner(rays, background=background, train=jitter, generator=generator, target=rays.target)
+    return total_loss(out.losses)
 
 
 @dataclass
@@ -445,8 +405,9 @@ class Adaptation:
     """What :func:`fast_adapt` returns.
 
     Attributes:
-        query_mse: () the query MSE after adaptation (differentiable back to the initial parameters).
-        support_mse: the support MSE before each inner step (``support_mse[0]``: the initialisation's).
+        query_mse: () the query loss after adaptation (differentiable back to the initial parameters);
+            the MSE unless the model adds loss terms (:func:`task_loss`).
+        support_mse: the support loss before each inner step (``support_mse[0]``: the initialisation's).
     """
 
     query_mse: torch.Tensor
@@ -463,10 +424,10 @@ def fast_adapt(task: Task, learner: Learner, steps: int, *, background: torch.Te
     generator = torch.Generator().manual_seed(task.seed)
     support_mse = []
     for _ in range(steps):
-        loss = photometric_mse(learner, task.support, background, generator, jitter)
+        loss = task_loss(learner, task.support, background, generator, jitter)
         support_mse.append(float(loss.detach()))
         learner.adapt(loss)
-    query = photometric_mse(learner, task.query, background, generator, jitter)
+    query = task_loss(learner, task.query, background, generator, jitter)
     return Adaptation(query, support_mse)
 
 
@@ -525,7 +486,7 @@ def evaluate_adaptation(model: RadianceModel, tasks: Sequence[Task], steps: int,
     before, after = [], []
     for task in tasks:
         with torch.no_grad():
-            before.append(float(photometric_mse(model, task.query, background, None, jitter=False)))
+            before.append(float(task_loss(model, task.query, background, None, jitter=False)))
         adaptation = fast_adapt(task, meta.clone(), steps, background=background, jitter=False)
         after.append(float(adaptation.query_mse.detach()))
     return sum(before) / len(before), sum(after) / len(after)

@@ -406,3 +406,104 @@ def test_init_follows_the_generator_and_the_bounds_dtype():
     assert all(p.dtype == torch.float64 for p in double.parameters()) and double.bounds.dtype == torch.float64
     out = double(_rays(3, dtype=torch.float64), background=WHITE.double())
     assert out.rgb.dtype == torch.float64
+
+
+# -- the shipped model zoo still loads ---------------------------------------------------------
+
+
+def _zoo_folders() -> list:
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "model_zoo"
+    return sorted(p.parent for p in root.glob("*/**/init.json"))
+
+
+@pytest.mark.parametrize("folder", _zoo_folders(), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_model_zoo_entries_load_with_their_names_and_render(folder):
+    """Every shipped NeRF-MLP entry loads strictly (parameter names unchanged), renders finite colours
+    through the shared compositor, and its weights also load into an occupancy-estimator model."""
+    from nerfmeta.init import load_init
+
+    saved = load_init(folder)
+    model = saved.build()
+    assert sorted(saved.state) == sorted(model.state_dict())
+    rays = _rays(6)
+    out = model(rays, background=WHITE, target=torch.full((6, 3), 0.5))
+    assert torch.isfinite(out.rgb).all() and set(out.losses) == {"mse"}
+    occ = NerfMLP(dataclasses.replace(saved.model_config, estimator="occupancy"), model.bounds)
+    occ.load_state_dict(saved.state)  # strict: the grid is not part of the weights
+    torch.testing.assert_close(occ.get_density(rays.origins)[0], model.get_density(rays.origins)[0])
+
+
+# -- the occupancy-grid estimator --------------------------------------------------------------
+
+OCC = dataclasses.replace(TINY, estimator="occupancy", occupancy_resolution=9, occupancy_warmup=2, occupancy_every=3,
+                          early_stop_eps=0.0)
+
+
+def _ball_field(model, radius=0.5):
+    """Give ``model`` an opaque-ish ball of ``radius``: the density head reads a fixed function of the points."""
+    original = model._raw_density
+
+    def raw_density(points):
+        raw, h = original(points)
+        inside = (points.norm(dim=-1) < radius).to(raw.dtype)
+        return raw * 0 + 20.0 * inside - 20.0 * (1 - inside), h
+
+    model._raw_density = raw_density
+    return model
+
+
+def test_occupancy_warm_up_skips_nothing_then_refresh_skips_empty_space_only():
+    model = _ball_field(_model(OCC))
+    rays = _rays(24, seed=3)
+    before = model(rays, background=WHITE)
+    assert model.begin_step(1, None).message == "" and not model.occupancy.skips  # still warming up
+    event = model.begin_step(2, None)
+    assert not event.params_changed and "occupancy grid refreshed" in event.message and model.occupancy.skips
+    after = model(rays, background=WHITE)
+    assert after.samples_evaluated < 0.5 * before.samples_evaluated
+    torch.testing.assert_close(after.rgb, before.rgb, rtol=0, atol=1e-4)  # only empty space was skipped
+    torch.testing.assert_close(after.acc, before.acc, rtol=0, atol=1e-4)
+    occupied = model.occupancy.binaries.clone()
+    model.begin_step(4, None)
+    assert torch.equal(model.occupancy.binaries, occupied)  # not due (every 3 after the warm-up)
+
+
+def test_occupancy_early_termination_drops_samples_behind_the_surface():
+    rays = _rays(24, seed=4)
+    full = _ball_field(_model(OCC))(rays, background=WHITE)
+    cut = _ball_field(_model(dataclasses.replace(OCC, early_stop_eps=1e-3)))(rays, background=WHITE)
+    assert cut.samples_evaluated < full.samples_evaluated
+    torch.testing.assert_close(cut.rgb, full.rgb, rtol=0, atol=2e-3)
+
+
+def test_occupancy_structure_round_trip_restores_identical_renders():
+    model = _model(OCC)
+    for step in range(6):
+        model.begin_step(step, None)
+    fresh = _model(OCC, seed=1)
+    fresh.load_structure(json.loads(json.dumps(model.structure())))
+    fresh.load_state_dict(model.state_dict())
+    rays = _rays(16, seed=5)
+    assert torch.equal(fresh(rays, background=WHITE).rgb, model(rays, background=WHITE).rgb)
+
+
+def test_occupancy_short_fit_raises_psnr_with_fewer_samples(tiny_scene):
+    from nerfmeta.data import load_scene
+    from nerfmeta.fit.loop import FitConfig, fit
+
+    scene = load_scene(tiny_scene)
+    config = dataclasses.replace(OCC, occupancy_resolution=24, occupancy_warmup=20, occupancy_every=20, n_samples=24,
+                                 early_stop_eps=1e-4, lr=5e-3)
+    model = NerfMLP(config, scene.bounds, generator=torch.Generator().manual_seed(0))
+    result = fit(model, scene, FitConfig(iters=80, batch_rays=256, eval_every=0, final_ssim=False), background=WHITE)
+    first, last = result.history[0], result.history[-1]
+    assert last.train_psnr > first.train_psnr + 3.0
+    assert model.occupancy.size == (24, 24, 24)  # refreshed during the fit
+    assert result.final.samples_per_ray < 0.5 * config.n_samples  # the box only, not all of [near, far]
+
+
+def test_importance_sampling_needs_the_stratified_estimator():
+    with pytest.raises(ConfigError, match="estimator=stratified"):
+        dataclasses.replace(OCC, n_importance=4)

@@ -21,17 +21,10 @@ from nerfmeta.fields.grid_ops import (
     interp_gather,
     trilinear_gather,
 )
-from nerfmeta.fields.voxel_grid import (
-    VoxelGrid,
-    VoxelGridConfig,
-    march_packed,
-    packed_weights,
-)
+from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 from nerfmeta.fit.loop import FitConfig, FitState, fit
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.metrics import mse_to_psnr
-from nerfmeta.render.sampling import fixed_step_samples
-from nerfmeta.render.volume import render_weights
 
 SMALL = VoxelGridConfig(coarse_iters=40, coarse_num_voxels=16**3, num_voxels=24**3, growth_steps=(20,),
                         occupancy_every=10, mlp_width=16, feature_dim=4, view_dependent=True)  # the MLP path
@@ -111,38 +104,6 @@ def test_trilinear_gather_matches_grid_sample_and_hits_corners_exactly():
     idx, w = corner_indices_weights(points, box, size)
     assert idx.shape == w.shape == (8, 50)
     assert (w >= 0).all() and torch.allclose(w.sum(0), torch.ones(50, dtype=torch.float64))
-
-
-def test_march_packed_equals_fixed_step_samples():
-    near = torch.tensor([2.0, 2.5, 3.0, 1.0], dtype=torch.float64)
-    far = torch.tensor([3.0, 2.5, 3.35, 1.1], dtype=torch.float64)  # a zero-length ray, partial last bins
-    jitter = torch.tensor([0.5, 0.1, 0.9, 0.0], dtype=torch.float64)
-    step = 0.1
-    ray_idx, t, delta = march_packed(near, far, step, jitter)
-    t_d, delta_d, valid = fixed_step_samples(near, far, step, 12, perturb=False)
-    assert ray_idx.tolist() == valid.nonzero()[:, 0].tolist()
-    t_ref = near[:, None] + step * torch.arange(12, dtype=torch.float64) + delta_d * jitter[:, None]
-    torch.testing.assert_close(t, t_ref[valid])
-    torch.testing.assert_close(delta, delta_d[valid])
-    torch.testing.assert_close(torch.zeros(4, dtype=torch.float64).index_add(0, ray_idx, delta), far - near)
-
-
-def test_packed_weights_equal_dense_render_weights_with_gradients():
-    g = torch.Generator().manual_seed(2)
-    counts = [3, 0, 5, 1]
-    tau = (torch.rand(sum(counts), generator=g, dtype=torch.float64) * 2).requires_grad_()
-    ray_idx = torch.repeat_interleave(torch.arange(4), torch.tensor(counts))
-    w, t_final = packed_weights(tau, ray_idx, 4)
-    dense = torch.zeros(4, max(counts), dtype=torch.float64)
-    rank = torch.cat([torch.arange(c) for c in counts])
-    dense = dense.index_put((ray_idx, rank), tau)
-    w_d, t_d = render_weights(dense)
-    torch.testing.assert_close(w, w_d[ray_idx, rank])
-    torch.testing.assert_close(t_final, t_d)
-    assert t_final[1] == 1.0
-    torch.testing.assert_close(torch.zeros(4, dtype=torch.float64).index_add(0, ray_idx, w) + t_final,
-                               torch.ones(4, dtype=torch.float64))
-    torch.autograd.gradcheck(lambda v: packed_weights(v, ray_idx, 4), (tau,))
 
 
 # -- config ----------------------------------------------------------------------------------

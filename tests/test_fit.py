@@ -45,10 +45,16 @@ def test_fit_cli_writes_run_folder_and_psnr_rises(tiny_scene, tmp_path, backbone
     assert config["backbone"] == backbone and config["fit"]["iters"] == 90
 
 
-def _grid_run_config(scene, iters, checkpoint_every):
+RESUME_MODELS = {
+    "grid": {"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5},
+    "nerf": {"estimator": "occupancy", "depth": 2, "width": 16, "skips": [], "n_samples": 16, "occupancy_warmup": 3,
+             "occupancy_every": 4, "occupancy_resolution": 12},  # grid refreshes before and after the kill
+}
+
+
+def _grid_run_config(scene, iters, checkpoint_every, backbone="grid"):
     return RunConfig(
-        scene=str(scene), backbone="grid",
-        model={"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5},
+        scene=str(scene), backbone=backbone, model=RESUME_MODELS[backbone],
         fit=FitConfig(iters=iters, batch_rays=256, eval_every=0, checkpoint_every=checkpoint_every),
     )
 
@@ -57,10 +63,11 @@ class _Kill(Exception):
     pass
 
 
-def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path):
+@pytest.mark.parametrize("backbone", sorted(RESUME_MODELS))
+def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path, backbone):
     # uninterrupted
     full = tmp_path / "full"
-    run_fit(_grid_run_config(tiny_scene, 16, 4), full)
+    run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), full)
     # killed at iteration 10 (last checkpoint at 8), then resumed
     killed = tmp_path / "killed"
 
@@ -69,9 +76,9 @@ def test_resume_after_kill_equals_uninterrupted_run(tiny_scene, tmp_path):
             raise _Kill
 
     with pytest.raises(_Kill):
-        run_fit(_grid_run_config(tiny_scene, 16, 4), killed, callbacks=[kill_at_10])
+        run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), killed, callbacks=[kill_at_10])
     assert not (killed / "summary.json").exists()
-    run_fit(_grid_run_config(tiny_scene, 16, 4), killed, resume=True)
+    run_fit(_grid_run_config(tiny_scene, 16, 4, backbone), killed, resume=True)
     from safetensors.torch import load_file
 
     a = load_file(str(full / "checkpoint.safetensors"))
@@ -165,7 +172,7 @@ def test_a_grid_started_at_any_initial_alpha_learns(tiny_scene, alpha):
 
     Test PSNR after 120 steps for alpha 1e-6, 1e-4 and 1e-2 (from 10.1, 10.1 and 11.9 dB): with the
     shared epsilon 1e-8 10.2, 24.8 and 27.3 dB (the 1e-6 grid barely moves); with
-    ``adam_eps_density`` 1e-15 19.6, 24.9 and 27.3 dB.
+    the density groups' declared epsilon 1e-15 (``DENSITY_ADAM_EPS``) 19.6, 24.9 and 27.3 dB.
     """
     from nerfmeta.fit.evaluate import evaluate_views
 
@@ -177,3 +184,50 @@ def test_a_grid_started_at_any_initial_alpha_learns(tiny_scene, alpha):
     result = fit(model, scene, FitConfig(iters=120, batch_rays=256, eval_every=0, lr_decay=1.0, final_ssim=False),
                  background=white)
     assert result.final.psnr > before + 5.0, (alpha, before, result.final.psnr)
+
+
+def test_optimizer_takes_the_epsilon_each_group_declares_not_its_name():
+    from nerfmeta.fields.base import ParamGroup
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+    from nerfmeta.fields.voxel_grid import DENSITY_ADAM_EPS
+    from nerfmeta.fit.loop import build_optimizer
+
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    config = FitConfig(adam_eps=1e-7)
+    grid = build_model("grid", config_from_dict("grid", {**vars_of(default_config("grid")), "num_voxels": 8**3,
+                                                         "coarse_num_voxels": 8**3}), box, seed=0)
+    eps = {g["name"]: g["eps"] for g in build_optimizer(grid, config).param_groups}
+    assert eps == {"density": DENSITY_ADAM_EPS, "features": 1e-7}
+
+    class Named(DenseGrid):  # a group merely *named* density declares nothing
+        def param_groups(self):
+            return [ParamGroup("density", ("grid",), 0.1)]
+
+    assert [g["eps"] for g in build_optimizer(Named(DenseGridConfig(side=4), box), config).param_groups] == [1e-7]
+
+
+def test_the_fit_loop_minimises_the_sum_of_the_models_named_terms(tiny_scene):
+    """A term the model adds (here a strong pull of the grid to 0) is minimised with the photometric one."""
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+
+    class Pulled(DenseGrid):
+        def loss_terms(self, out, target):
+            return {**super().loss_terms(out, target), "pull": 10.0 * self.grid.square().mean()}
+
+    scene = load_scene(tiny_scene)
+    sizes = {}
+    for cls in (DenseGrid, Pulled):
+        torch.manual_seed(0)
+        model = cls(DenseGridConfig(side=12), scene.bounds)
+        fit(model, scene, FitConfig(iters=30, batch_rays=128, eval_every=0, final_ssim=False), background=torch.ones(3))
+        sizes[cls.__name__] = float(model.grid.detach().square().mean())
+    assert sizes["Pulled"] < 0.5 * sizes["DenseGrid"], sizes
+
+
+def test_config_of_an_older_run_with_a_retired_key_loads() -> None:
+    from nerfmeta.fit.run import RunConfig
+
+    saved = {"scene": "s", "fit": {"iters": 7, "adam_eps_density": 1e-15}}
+    assert RunConfig.from_json(saved).fit.iters == 7
+    with pytest.raises(TypeError):  # an unknown key that was never ours is still an error
+        RunConfig.from_json({"scene": "s", "fit": {"iters": 7, "no_such_key": 1}})

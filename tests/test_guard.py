@@ -1,6 +1,6 @@
 """The divergence guard (nerfmeta/fit/guard.py) in the fit loop and the meta-training loop.
 
-NaN and explosions are injected by wrapping a backbone's ``forward`` (or the meta-batch outcome), so
+NaN and explosions are injected by wrapping a backbone's ``render`` (or the meta-batch outcome), so
 every case is exact: the step that fails, the snapshot it rolls back to, the rate it leaves.
 """
 
@@ -174,10 +174,10 @@ def inject(monkeypatch, calls: set[int], mode: str = "nan") -> dict:
     ``nan-grad`` (a finite render whose gradient is NaN).
     Returns a record of the parameters each training render saw, in order.
     """
-    original = VoxelGrid.forward
+    original = VoxelGrid.render  # the render the model's losses are computed from
     seen: dict = {"params": []}
 
-    def forward(self, rays, **kwargs):
+    def render(self, rays, **kwargs):
         out = original(self, rays, **kwargs)
         if kwargs.get("train"):
             seen["params"].append({n: p.detach().clone() for n, p in self.named_parameters()})
@@ -187,7 +187,7 @@ def inject(monkeypatch, calls: set[int], mode: str = "nan") -> dict:
                 out.rgb = out.rgb * (float("nan") if mode == "nan" else 0.0)
         return out
 
-    monkeypatch.setattr(VoxelGrid, "forward", forward)
+    monkeypatch.setattr(VoxelGrid, "render", render)
     return seen
 
 

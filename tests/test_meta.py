@@ -22,7 +22,7 @@ from pretrain.meta import (
     learn2learn_available,
     maml_meta_grad,
     meta_wrapper,
-    photometric_mse,
+    task_loss,
     reptile_update,
     task_direction,
 )
@@ -103,7 +103,7 @@ def test_loss_drops_after_inner_steps():
     model, t = tiny_model(), task()
     learner = meta_wrapper(model, "torchfunc", 5.0, first_order=True).clone()
     adaptation = fast_adapt(t, learner, 4, background=BG, jitter=False)
-    after = float(photometric_mse(learner, t.support, BG, None, jitter=False).detach())
+    after = float(task_loss(learner, t.support, BG, None, jitter=False).detach())
     assert after < adaptation.support_mse[0]
     assert all(b < a for a, b in zip(adaptation.support_mse, adaptation.support_mse[1:]))
 
@@ -293,3 +293,47 @@ def test_processes_take_interleaved_slots_of_the_same_meta_batch(tiny_scene):
         assert a.seed == b.seed and torch.equal(a.support.origins, b.support.origins) and torch.equal(a.query.target, b.query.target)
     assert sorted(sampler.scene_indices(5, 3)) == [0, 1, 2]  # distinct scenes while the batch fits
     assert whole[0].seed != sampler.tasks(6, 5)[0].seed
+
+
+# --- what a backbone declares, not what it is called -------------------------------------------
+
+
+def test_meta_learning_reads_a_backbones_declared_hints_not_its_name(monkeypatch):
+    from nerfmeta.fields import registry
+    from nerfmeta.fields.base import MetaHints
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+
+    class Toy(DenseGrid):
+        backbone = "toy"
+        meta_hints = MetaHints(algos=("reptile",), why_not="toy: reptile only", fixed={"side": 8},
+                               fixed_reason="the toy keeps 8 corners", inner_lr=3.0, inner_group_lr={"grid": 7.0})
+
+    monkeypatch.setitem(registry.BACKBONES, "toy", (DenseGridConfig, Toy, DenseGridConfig()))
+    with pytest.raises(ConfigError, match="toy: reptile only"):
+        MetaConfig(backbone="toy", algo="fomaml").validate()
+    config = MetaConfig(backbone="toy", algo="reptile", support_rays=1024)
+    config.validate()
+    assert config.model_config().side == 8
+    assert config.inner_lr_resolved == (3.0, {"grid": 14.0})  # group rates scale with the support batch
+    with pytest.raises(ConfigError, match="the toy keeps 8 corners"):
+        MetaConfig(backbone="toy", algo="reptile", model={"side": 9}).validate()
+
+
+def test_the_inner_loss_is_the_sum_of_the_models_terms():
+    """The grid's TV term is part of the inner loss, as in the fit loop, and follows the learner's parameters."""
+    from nerfmeta.fields.grid_ops import total_variation
+    from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
+
+    model = VoxelGrid(VoxelGridConfig(coarse_iters=0, num_voxels=6**3, growth_steps=(), tv_weight=0.5,
+                                      view_dependent=False), torch.tensor(CANONICAL_BOUNDS))
+    with torch.no_grad():
+        model.density.normal_(generator=torch.Generator().manual_seed(0))
+    t = task(3)
+    out = model(t.support, background=BG, train=False)
+    expected = torch.mean((out.rgb - t.support.target) ** 2) + 0.5 * total_variation(model.density)
+    torch.testing.assert_close(task_loss(model, t.support, BG, None, jitter=False), expected)
+    learner = meta_wrapper(model, "torchfunc", 1.0, first_order=True).clone()
+    learner.params = {**learner.params, "density": learner.params["density"] * 2}
+    out2 = learner(t.support, background=BG, train=False)
+    expected2 = torch.mean((out2.rgb - t.support.target) ** 2) + 0.5 * total_variation(model.density * 2)
+    torch.testing.assert_close(task_loss(learner, t.support, BG, None, jitter=False), expected2)

@@ -9,6 +9,8 @@ from nerfmeta.render.volume import (
     alpha_from_tau,
     composite,
     expected_depth,
+    packed_weights,
+    render_packed,
     render_weights,
     shifted_softplus,
     softplus_shift_for_alpha,
@@ -120,3 +122,86 @@ def test_shift_rejects_out_of_range_alpha():
 def test_alpha_from_tiny_tau_is_exact():
     tau = torch.tensor([1e-12, 1e-8], dtype=torch.float32)
     torch.testing.assert_close(alpha_from_tau(tau), tau, rtol=1e-6, atol=0)
+
+
+# -- packed samples: the shared compositor ----------------------------------------------------
+
+
+def test_packed_weights_equal_dense_render_weights_with_gradients():
+    g = torch.Generator().manual_seed(2)
+    counts = [3, 0, 5, 1]
+    tau = (torch.rand(sum(counts), generator=g, dtype=torch.float64) * 2).requires_grad_()
+    ray_idx = torch.repeat_interleave(torch.arange(4), torch.tensor(counts))
+    w, t_final = packed_weights(tau, ray_idx, 4)
+    dense = torch.zeros(4, max(counts), dtype=torch.float64)
+    rank = torch.cat([torch.arange(c) for c in counts])
+    dense = dense.index_put((ray_idx, rank), tau)
+    w_d, t_d = render_weights(dense)
+    torch.testing.assert_close(w, w_d[ray_idx, rank])
+    torch.testing.assert_close(t_final, t_d)
+    assert t_final[1] == 1.0
+    torch.testing.assert_close(torch.zeros(4, dtype=torch.float64).index_add(0, ray_idx, w) + t_final,
+                               torch.ones(4, dtype=torch.float64))
+    torch.autograd.gradcheck(lambda v: packed_weights(v, ray_idx, 4), (tau,))
+
+
+def test_render_packed_five_sample_ray_by_hand():
+    """One 5-sample ray through the shared compositor: T, weights, colour, opacity and depth by hand."""
+    tau = torch.tensor([0.0, 0.5, 1.0, 0.0, 2.0], dtype=torch.float64)
+    t = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0], dtype=torch.float64)
+    colours = torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 0], [0, 1.0, 1.0]], dtype=torch.float64)
+    ray_idx = torch.zeros(5, dtype=torch.long)
+    trans = [1.0, 1.0, math.exp(-0.5), math.exp(-1.5), math.exp(-1.5)]
+    alpha = [0.0, 1 - math.exp(-0.5), 1 - math.exp(-1.0), 0.0, 1 - math.exp(-2.0)]
+    w = torch.tensor([a * b for a, b in zip(trans, alpha)], dtype=torch.float64)
+    t_final = math.exp(-3.5)
+    background = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+    out = render_packed(tau, t, ray_idx, torch.tensor([6.0], dtype=torch.float64), background,
+                        lambda sel, rays: colours if sel is None else colours[sel])
+    torch.testing.assert_close(out.weights, w, rtol=1e-14, atol=0)
+    torch.testing.assert_close(out.acc, torch.tensor([1 - t_final], dtype=torch.float64))
+    torch.testing.assert_close(out.rgb[0], (w[:, None] * colours).sum(0) + t_final * background)
+    torch.testing.assert_close(out.depth[0], (w * t).sum() + t_final * 6.0)
+
+
+def test_render_packed_colour_threshold_skips_only_light_samples():
+    """Samples at or below ``color_thres`` are never coloured; the rest composite as without the threshold."""
+    tau = torch.tensor([1e-6, 0.3, 1e-6, 0.2, 8.0, 1.0], dtype=torch.float64)  # the last one is behind an opaque one
+    t = torch.arange(6, dtype=torch.float64)
+    ray_idx = torch.tensor([0, 0, 0, 1, 1, 1])
+    colours = torch.rand(6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    asked = []
+
+    def rgb_fn(sel, rays):
+        asked.append(None if sel is None else sel.tolist())
+        return colours if sel is None else colours[sel]
+
+    far, bg = torch.full((2,), 6.0, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+    full = render_packed(tau, t, ray_idx, far, bg, rgb_fn)
+    thres = 1e-3
+    cut = render_packed(tau, t, ray_idx, far, bg, rgb_fn, color_thres=thres)
+    heavy = (full.weights > thres).nonzero()[:, 0].tolist()
+    assert asked == [None, heavy] and heavy == [1, 3, 4]
+    light = full.weights.clone()
+    light[heavy] = 0
+    dropped = torch.zeros(2, 3, dtype=torch.float64).index_add(0, ray_idx, light[:, None] * colours)
+    torch.testing.assert_close(cut.rgb, full.rgb - dropped)
+    torch.testing.assert_close(cut.acc, full.acc)
+
+
+def test_render_packed_gradients_float64():
+    g = torch.Generator().manual_seed(3)
+    ray_idx = torch.tensor([0, 0, 1, 1, 1, 3])
+    t = torch.rand(6, generator=g, dtype=torch.float64).cumsum(0)
+    tau = (torch.rand(6, generator=g, dtype=torch.float64) * 2).requires_grad_()
+    colours = torch.rand(6, 3, generator=g, dtype=torch.float64).requires_grad_()
+    far = torch.full((4,), 9.0, dtype=torch.float64)
+    bg = torch.ones(3, dtype=torch.float64)
+
+    def run(tau_, colours_):
+        out = render_packed(tau_, t, ray_idx, far, bg, lambda sel, rays: colours_)
+        return out.rgb, out.acc, out.depth
+
+    torch.autograd.gradcheck(run, (tau, colours))
+    rgb, acc, _ = run(tau, colours)
+    assert rgb[2].tolist() == [1.0, 1.0, 1.0] and acc[2] == 0.0  # a ray without samples shows the background

@@ -1,11 +1,23 @@
-"""The interface every backbone implements.
+"""The interface every backbone implements: a field, an estimator, the shared renderer, named losses.
 
-A backbone is a :class:`RadianceModel`: an ``nn.Module`` whose ``forward`` renders a
-:class:`~nerfmeta.data.RayBatch` into colours (so ``torch.func.functional_call`` can render with
-any set of parameters, which meta-learning needs), and which lists its parameters as an ordered
-sequence of named *layers* from input to output, so transfer learning can freeze "the first k
-layers" of any backbone. The fit loop, transfer, meta-learning and the reports only use this
-interface.
+A :class:`Field` maps points (and view directions) to density and colour
+(:meth:`Field.get_density`, :meth:`Field.get_outputs`, as nerfstudio's fields) and lists its
+parameters as ordered *layers* (transfer freezes "the first k layers" of any backbone) and
+*parameter groups* that declare their own optimiser hints (:class:`ParamGroup`). It knows nothing
+of rays, samplers or optimisers.
+
+A backbone is a :class:`RadianceModel`: a field wired to an estimator (where to sample, see
+:mod:`nerfmeta.render.estimators`) and to the one compositor
+(:func:`~nerfmeta.render.volume.render_packed`). Its ``forward`` renders a
+:class:`~nerfmeta.data.RayBatch` (so ``torch.func.functional_call`` can render with any set of
+parameters, which meta-learning needs) and, given the rays' target colours, returns the model's
+named loss terms (:meth:`RadianceModel.loss_terms`), which the fit loop and meta-learning sum
+alike (:func:`total_loss`). What a backbone can do in meta-learning is declared in its
+:class:`MetaHints`, never recognised by name. The fit loop, transfer, meta-learning and the
+reports only use this interface.
+
+The parameter names are those of the field's modules (the field *is* the model's root module),
+so checkpoints and the model zoo keep loading.
 """
 
 from __future__ import annotations
@@ -18,6 +30,8 @@ import torch
 from torch import nn
 
 from nerfmeta.data.scene import RayBatch
+from nerfmeta.render.estimators import PackedSamples
+from nerfmeta.render.volume import render_packed
 
 
 @dataclass
@@ -31,6 +45,8 @@ class RenderOutput:
         samples_evaluated: number of (point) samples whose density was actually evaluated,
             after empty-space skipping; divide by ``n_rays`` for samples per ray.
         extras: further named tensors for losses or debugging (e.g. a coarse pass's ``rgb``).
+        losses: the model's named loss terms (:meth:`RadianceModel.loss_terms`), when the
+            render was given the target colours; empty otherwise.
     """
 
     rgb: torch.Tensor
@@ -38,6 +54,23 @@ class RenderOutput:
     depth: torch.Tensor
     samples_evaluated: int
     extras: dict[str, torch.Tensor] = field(default_factory=dict)
+    losses: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def total_loss(losses: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The loss to minimise: the sum of a model's named terms (each already weighted by the model)."""
+    if not losses:
+        raise ValueError("no loss terms: render with target=... to get the model's losses")
+    terms = list(losses.values())
+    total = terms[0]
+    for term in terms[1:]:
+        total = total + term
+    return total
+
+
+def photometric_mse(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """() mean squared error of colours (n_rays, 3) against targets (n_rays, 3): the photometric loss."""
+    return torch.mean((rgb - target) ** 2)
 
 
 @dataclass(frozen=True)
@@ -50,11 +83,39 @@ class Layer:
 
 @dataclass(frozen=True)
 class ParamGroup:
-    """A group of parameters that share an optimiser learning rate."""
+    """A group of parameters that share an optimiser learning rate, with the optimiser hints it needs.
+
+    Attributes:
+        name: the group's name (logs, ``--inner-lr-group``).
+        param_names: its parameters, by their ``named_parameters`` name.
+        lr: learning rate.
+        adam_eps: Adam's epsilon this group needs, or None for the fit's ``adam_eps``.
+    """
 
     name: str
     param_names: tuple[str, ...]
     lr: float
+    adam_eps: float | None = None
+
+
+@dataclass(frozen=True)
+class MetaHints:
+    """How a backbone can be meta-learned, declared by the backbone (read by ``pretrain/meta.py``)."""
+
+    algos: tuple[str, ...] = ("maml", "fomaml", "reptile")
+    """Meta-learning algorithms it supports (``maml`` needs second-order gradients through its forward)."""
+    why_not: str = ""
+    """One line for the user when an algorithm outside ``algos`` is asked for."""
+    model_defaults: dict[str, Any] = field(default_factory=dict)
+    """Config overrides for meta-learning (sized so a meta-step takes seconds on a 2-core CPU)."""
+    fixed: dict[str, Any] = field(default_factory=dict)
+    """Config values forced for meta-learning so the parameter set never changes (an override contradicting them is an error)."""
+    fixed_reason: str = "its parameter set must not change during meta-learning"
+    """Why ``fixed`` is forced, for the error an override contradicting it gets."""
+    inner_lr: float = 30.0
+    """Default inner SGD rate of every parameter."""
+    inner_group_lr: dict[str, float] = field(default_factory=dict)
+    """Default inner SGD rates of named parameter groups (quoted for 512 support rays, scaled with their number)."""
 
 
 @dataclass(frozen=True)
@@ -92,28 +153,39 @@ class StepEvent:
     decisions: tuple[Decision, ...] = ()
 
 
-class RadianceModel(nn.Module, abc.ABC):
-    """Base class of all backbones.
+class Field(nn.Module, abc.ABC):
+    """Points (and view directions) to density and colour; parameters as layers and groups.
 
-    Subclasses set ``self.config`` (a frozen dataclass saved as JSON with every run) and
-    implement :meth:`forward`, :meth:`layers` and :meth:`param_groups`. Models whose structure
-    changes during training (stages, grid growth, occupancy caches) override
-    :meth:`begin_step`, :meth:`structure` and :meth:`load_structure` so checkpoints can rebuild
-    them exactly.
+    Densities are per world unit of length, so the optical depth of a sample is ``sigma * delta``
+    with ``delta`` in world units, whatever the field's own units.
     """
 
-    backbone: str = "base"
+    @abc.abstractmethod
+    def get_density(self, points: torch.Tensor) -> tuple[torch.Tensor, Any]:
+        """Density at world points.
+
+        Args:
+            points: (N, 3) world positions.
+
+        Returns:
+            sigma (N,) non-negative density per world unit, and an *embedding*: whatever
+            :meth:`get_outputs` needs to colour these points without recomputing (nerfstudio's
+            ``density_embedding``; e.g. an MLP's trunk features, a grid's corner weights).
+        """
 
     @abc.abstractmethod
-    def forward(
-        self,
-        rays: RayBatch,
-        *,
-        background: torch.Tensor,
-        train: bool = False,
-        generator: torch.Generator | None = None,
-    ) -> RenderOutput:
-        """Render ``rays``; ``background`` is (3,) RGB; ``train`` enables jitter and training-only work."""
+    def get_outputs(self, embedding: Any, sel: torch.Tensor | None, directions: torch.Tensor, ray_idx: torch.Tensor) -> torch.Tensor:
+        """Colour of some of the points given to :meth:`get_density`.
+
+        Args:
+            embedding: what :meth:`get_density` returned for the N points.
+            sel: (K,) indices of the points to colour, or None for all N.
+            directions: (n_rays, 3) unit view direction of each ray.
+            ray_idx: (K,) the ray of each point to colour (its direction is ``directions[ray_idx]``).
+
+        Returns:
+            (K, 3) RGB in [0, 1].
+        """
 
     @abc.abstractmethod
     def layers(self) -> list[Layer]:
@@ -121,7 +193,94 @@ class RadianceModel(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def param_groups(self) -> list[ParamGroup]:
-        """Learning-rate groups (every trainable parameter in exactly one)."""
+        """Learning-rate groups (every trainable parameter in exactly one), with their optimiser hints."""
+
+
+@dataclass(frozen=True)
+class SamplingPlan:
+    """How a model renders right now: where to sample and how much colour decoding to skip.
+
+    Attributes:
+        samples: the packed samples of the ray batch.
+        color_thres: samples whose compositing weight is not above this get no colour (0: all do).
+    """
+
+    samples: PackedSamples
+    color_thres: float = 0.0
+
+
+class RadianceModel(Field):
+    """Base class of all backbones: a field wired to an estimator and the shared renderer.
+
+    Subclasses set ``self.config`` (a frozen dataclass saved as JSON with every run), implement
+    the :class:`Field` methods and :meth:`sample` (the estimator: where along each ray to
+    evaluate the field); :meth:`forward` then evaluates and composites with
+    :func:`~nerfmeta.render.volume.render_packed`, the same for every backbone. Models whose
+    structure changes during training (stages, grid growth, occupancy grids) override
+    :meth:`begin_step`, :meth:`structure` and :meth:`load_structure` so checkpoints can rebuild
+    them exactly.
+    """
+
+    backbone: str = "base"
+    meta_hints: MetaHints = MetaHints()
+    """What meta-learning may do with this backbone (see :class:`MetaHints`)."""
+
+    @classmethod
+    def settles_at(cls, config: Any) -> int:
+        """The step after which the parameter set stops changing (0: it never changes); a pretrained
+        model must train past it so transfer fits start from the final structure."""
+        return 0
+
+    def recipe_notes(self) -> dict[str, Any]:
+        """Config values worth quoting in a pretrained model's recipe line (default: none)."""
+        return {}
+
+    def sample(self, rays: RayBatch, *, train: bool, generator: torch.Generator | None) -> SamplingPlan:
+        """The estimator: packed samples of ``rays`` (jittered with ``generator`` when ``train``)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement sample() or override forward()")
+
+    def forward(
+        self,
+        rays: RayBatch,
+        *,
+        background: torch.Tensor,
+        train: bool = False,
+        generator: torch.Generator | None = None,
+        target: torch.Tensor | None = None,
+    ) -> RenderOutput:
+        """Render ``rays``; ``background`` is (3,) RGB; ``train`` enables jitter and training-only work.
+
+        With ``target`` (n_rays, 3), the output's ``losses`` holds :meth:`loss_terms` (computed
+        here, so a ``functional_call`` or a meta-learning clone uses its own parameters).
+        """
+        out = self.render(rays, background=background, train=train, generator=generator)
+        if target is not None:
+            out.losses = self.loss_terms(out, target)
+        return out
+
+    def render(
+        self,
+        rays: RayBatch,
+        *,
+        background: torch.Tensor,
+        train: bool = False,
+        generator: torch.Generator | None = None,
+        view_dirs: torch.Tensor | None = None,
+    ) -> RenderOutput:
+        """Estimator, field and compositor; ``view_dirs`` (n_rays, 3) replaces the rays' directions for colour."""
+        plan = self.sample(rays, train=train, generator=generator)
+        samples = plan.samples
+        sigma, embedding = self.get_density(samples.points(rays.origins, rays.directions))
+        directions = rays.directions if view_dirs is None else view_dirs
+        comp = render_packed(sigma * samples.delta, samples.t, samples.ray_idx, samples.far, background,
+                             lambda sel, ray_idx: self.get_outputs(embedding, sel, directions, ray_idx),
+                             color_thres=plan.color_thres)
+        return RenderOutput(rgb=comp.rgb, acc=comp.acc, depth=comp.depth, samples_evaluated=len(samples))
+
+    def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Named, weighted loss terms of a render against ``target`` (n_rays, 3): ``mse`` (photometric)
+        plus whatever the backbone adds (e.g. ``tv``); the loss is their sum (:func:`total_loss`)."""
+        return {"mse": photometric_mse(out.rgb, target)}
 
     def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
         """Called before iteration ``step`` (0-based). Default: nothing changes."""
@@ -149,10 +308,6 @@ class RadianceModel(nn.Module, abc.ABC):
             The decisions made (the model has applied them to itself).
         """
         return []
-
-    def regularization(self) -> torch.Tensor | None:
-        """An extra loss term added to the photometric loss, or None."""
-        return None
 
     def structure(self) -> dict[str, Any]:
         """JSON-able description of the current structure (shapes, stage, box) for checkpoints."""

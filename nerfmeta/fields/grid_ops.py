@@ -25,6 +25,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from nerfmeta.render.estimators import dilate, grid_points, nearest_from_coords
+
 __all__ = [
     "corner_indices_weights",
     "corners_from_coords",
@@ -185,13 +187,6 @@ def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
     return torch.stack([row.index_select(0, cols) for row in a]) if a.shape[0] else a[:, cols]
 
 
-def nearest_from_coords(x: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
-    """(N,) flat index of the corner nearest each corner coordinate (3, N) (clamped to the grid)."""
-    top = torch.tensor([s - 1 for s in size], dtype=x.dtype, device=x.device)[:, None]
-    ijk = x.clamp(torch.zeros_like(top), top).round_().long()
-    return (ijk[0] * size[1] + ijk[1]) * size[2] + ijk[2]
-
-
 def nearest_index(points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
     """(N,) flat index of the voxel corner nearest each (N, 3) point (points clamped to the box)."""
     return nearest_from_coords(grid_coords(points, bounds, size), size)
@@ -205,12 +200,6 @@ def nearest_lookup(mask: torch.Tensor, points: torch.Tensor, bounds: torch.Tenso
     return mask.reshape(-1)[idx] & inside
 
 
-def grid_points(bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
-    """(X, Y, Z, 3) world positions of the grid corners."""
-    axes = [torch.linspace(float(bounds[0, a]), float(bounds[1, a]), size[a], dtype=bounds.dtype, device=bounds.device) for a in range(3)]
-    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
-
-
 def resample_cf(grid: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
     """Trilinearly resample a (C, X, Y, Z) grid to ``size`` corners (same box)."""
     return F.interpolate(grid.unsqueeze(0), size=size, mode="trilinear", align_corners=True).squeeze(0)
@@ -222,11 +211,3 @@ def total_variation(grid: torch.Tensor) -> torch.Tensor:
     dy = (grid[:, :, 1:] - grid[:, :, :-1]).pow(2).mean()
     dz = (grid[:, :, :, 1:] - grid[:, :, :, :-1]).pow(2).mean()
     return (dx + dy + dz) / 3.0
-
-
-def dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
-    """Grow a (X, Y, Z) boolean mask by ``radius`` voxels along each axis (a cube, by max pooling)."""
-    if radius <= 0:
-        return mask.clone()
-    k = 2 * radius + 1
-    return F.max_pool3d(mask[None, None].float(), k, stride=1, padding=radius)[0, 0] > 0

@@ -9,12 +9,14 @@ import torch
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
 from nerfmeta.fields.nerf_mlp import NERF_SMALL, NerfMLP, NerfMLPConfig
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 
 BACKBONES: dict[str, tuple[type, type[RadianceModel], Any]] = {
     "grid": (VoxelGridConfig, VoxelGrid, VoxelGridConfig()),
     "nerf": (NerfMLPConfig, NerfMLP, NERF_SMALL),
+    "dense": (DenseGridConfig, DenseGrid, DenseGridConfig()),  # the example of docs/new_field.md
 }
 
 
@@ -33,6 +35,12 @@ def config_from_dict(backbone: str, values: dict[str, Any]) -> Any:
         raise ConfigError(f"{backbone} config has unknown keys {unknown}; known: {sorted(names)}")
     fixed = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
     return cls(**fixed)
+
+
+def model_class(backbone: str) -> type[RadianceModel]:
+    """The model class of ``backbone`` (its capabilities, e.g. ``meta_hints``, are class attributes)."""
+    _check(backbone)
+    return BACKBONES[backbone][1]
 
 
 def build_model(backbone: str, config: Any, bounds: torch.Tensor, *, seed: int, device: torch.device | str = "cpu") -> RadianceModel:

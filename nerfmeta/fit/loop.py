@@ -19,7 +19,6 @@ with fresh rays, so ``iters`` counts good steps (the time of bad ones still coun
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
@@ -28,7 +27,7 @@ import torch
 
 from nerfmeta.config import bounded, check_fields
 from nerfmeta.data.scene import Scene
-from nerfmeta.fields.base import Decision, RadianceModel
+from nerfmeta.fields.base import Decision, RadianceModel, total_loss
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
 from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
@@ -54,9 +53,7 @@ class FitConfig:
     lr_decay: float = bounded(0.1, low=0, high=1, low_open=True)
     """Learning rates decay exponentially to this fraction at the end (of iters or of the time budget)."""
     adam_eps: float = bounded(1e-8, low=0, low_open=True)
-    """Adam's epsilon."""
-    adam_eps_density: float = bounded(1e-15, low=0, low_open=True)
-    """Adam's epsilon for parameter groups named ``density`` (the grids' density): their gradients scale with the initial alpha (about 1e-10 per voxel at alpha 1e-6), which an epsilon of 1e-8 damps to a standstill (see build_optimizer)."""
+    """Adam's epsilon, for the parameter groups that declare none of their own (``ParamGroup.adam_eps``)."""
     eval_every: int = bounded(500, low=0)
     """Evaluate test PSNR every this many iterations (0: only at the end)."""
     eval_views: int = bounded(4, low=0)
@@ -76,6 +73,16 @@ class FitConfig:
         # config.json holds the guard as a dict: accept one so a saved config loads back equal.
         object.__setattr__(self, "guard", GuardConfig.coerce(self.guard))
         check_fields(self, "fit config")
+
+    @classmethod
+    def from_json(cls, data: dict) -> "FitConfig":
+        """The config saved in a ``config.json``; keys of older versions that no longer mean anything are dropped."""
+        return cls(**{k: v for k, v in data.items() if k not in RETIRED_FIT_KEYS})
+
+
+RETIRED_FIT_KEYS = ("adam_eps_density",)
+"""FitConfig fields of older versions: the density groups' Adam epsilon is now declared by the field
+(``ParamGroup.adam_eps``), so a run folder written before that still loads and resumes."""
 
 
 @dataclass
@@ -138,22 +145,15 @@ def build_optimizer(model: RadianceModel, config: FitConfig) -> torch.optim.Adam
     the same update) is used when every parameter is a floating-point CPU or CUDA tensor: on a
     2-core CPU it steps a 7-million-value voxel grid about four times faster.
 
-    Groups named ``density`` use ``config.adam_eps_density``. A post-activated density
-    ``softplus(raw + shift)`` has gradient ``sigmoid(raw + shift)`` in ``raw``, which at the start
-    is about the initial alpha per step, so the density grid's gradients shrink in proportion to
-    ``alpha_init``: on the tiny scene at alpha 1e-6 they are 1e-10 (median) to 1e-8 (max) per
-    voxel, and Adam's ``g / (sqrt(v) + eps)`` with eps 1e-8 moves a voxel a few percent of its
-    learning rate per step (the raw density rose 0.5 in 100 steps instead of 3.9). With 1e-15
-    (Instant-NGP's value) the step is scale-free again. The other groups keep ``adam_eps``: a tiny
-    epsilon on the colour grid and MLP cost 1.5 dB at alpha 1e-4 (noisy low-gradient voxels then
-    take full steps), on the density alone it cost nothing.
+    A group's epsilon is the one it declares (``ParamGroup.adam_eps``, e.g. the voxel grid's density
+    groups, see ``nerfmeta.fields.voxel_grid.DENSITY_ADAM_EPS``), else ``config.adam_eps``.
     """
     params = dict(model.named_parameters())
     groups = []
     for g in model.param_groups():
         ps = [params[n] for n in g.param_names if params[n].requires_grad]
         if ps:
-            eps = config.adam_eps_density if g.name == "density" else config.adam_eps
+            eps = config.adam_eps if g.adam_eps is None else g.adam_eps
             groups.append({"params": ps, "lr": g.lr, "base_lr": g.lr, "name": g.name, "eps": eps})
     if not groups:
         raise ValueError("every parameter is frozen: nothing to optimise")
@@ -304,12 +304,8 @@ def fit(
             for g in optimizer.param_groups:
                 g["lr"] = g["base_lr"] * scale
             batch = sampler.sample(config.batch_rays, gen)
-            out = model(batch, background=background, train=True, generator=gen)
-            mse = torch.mean((out.rgb - batch.target) ** 2)
-            loss = mse
-            reg = model.regularization()
-            if reg is not None:
-                loss = loss + reg
+            out = model(batch, background=background, train=True, generator=gen, target=batch.target)
+            mse, loss = out.losses["mse"], total_loss(out.losses)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             loss_value, bad = guard.check_step(loss, trainable(), state.step + 1, _DIVERGED_HINT)

@@ -96,7 +96,7 @@ class RunConfig:
     @staticmethod
     def from_json(data: dict[str, Any]) -> "RunConfig":
         data = {k: v for k, v in data.items() if k not in RESOLVED_KEYS}
-        data["fit"] = FitConfig(**data.get("fit", {}))
+        data["fit"] = FitConfig.from_json(data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         data["snapshot_iters"] = tuple(data.get("snapshot_iters", ()))
         return RunConfig(**data)
@@ -318,7 +318,7 @@ def _optimizer_description(model, fit_config: FitConfig, frozen: Sequence[str]) 
     return {
         "name": "Adam",
         "eps": fit_config.adam_eps,
-        "eps_density": fit_config.adam_eps_density,
+        "eps_groups": {g.name: g.adam_eps for g in model.param_groups() if g.adam_eps is not None},
         "lr_groups": {g.name: g.lr for g in model.param_groups()},
         "lr_decay": f"exponential to x{fit_config.lr_decay:g} at the end of the iterations or time budget",
         "batch_rays": fit_config.batch_rays,

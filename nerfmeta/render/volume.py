@@ -1,6 +1,9 @@
 """Volume rendering: density activation, alpha, transmittance and compositing.
 
-Pure functions. Compositing works from *optical depths* ``tau = sigma * delta`` rather than from
+Pure functions. :func:`render_packed` is the one compositor every backbone renders with, in
+training and evaluation alike: samples come *packed* (one flat list sorted by ray, see
+:mod:`nerfmeta.render.estimators`), so a ray costs what its samples cost. The dense forms
+(:func:`render_weights`, :func:`composite`) serve fixed-count samplers and tests. Compositing works from *optical depths* ``tau = sigma * delta`` rather than from
 alphas, so the transmittance ``T_i = exp(-sum_{j<i} tau_j)`` is computed in log space exactly:
 ``log(1 - alpha_i) = -tau_i`` needs no ``log(1 - alpha)`` that would be ``-inf`` at ``alpha = 1``.
 For any finite non-negative ``sigma`` (tested up to 1e6) and ``delta`` (1e-10 to 1e10, and 0)
@@ -11,6 +14,8 @@ sum to ``1 - T_final`` (at most 1, to float rounding).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -97,3 +102,101 @@ def expected_depth(weights: torch.Tensor, t: torch.Tensor, t_final: torch.Tensor
         (n_rays,) depth.
     """
     return (weights * t).sum(-1) + t_final * far
+
+
+# ----- packed samples: the one compositor every backbone renders with ----------------------------
+
+
+def packed_weights(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Compositing weights ``T_i * alpha_i`` of packed samples (the packed form of :func:`render_weights`).
+
+    The transmittance in front of a sample, ``T_i = exp(-sum of the ray's earlier tau)``, takes its
+    exclusive per-ray sum from one running sum in float64 (exact enough for any batch).
+
+    Args:
+        tau: (M,) non-negative optical depths, samples of a ray contiguous and front to back.
+        ray_idx: (M,) non-decreasing ray of each sample.
+        n_rays: number of rays.
+
+    Returns:
+        weights (M,) in [0, 1]; t_final (n_rays,) transmittance after each ray's last sample
+        (1 for rays without samples), so that per ray ``sum(weights) + t_final == 1``.
+    """
+    log_t_before, ray_sum = _packed_log_transmittance(tau, ray_idx, n_rays)
+    return torch.exp(log_t_before).to(tau.dtype) * alpha_from_tau(tau), torch.exp(-ray_sum).to(tau.dtype)
+
+
+def packed_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """(M,) transmittance in front of each packed sample (``T_i``, 1 for a ray's first sample); see :func:`packed_weights`."""
+    return torch.exp(_packed_log_transmittance(tau, ray_idx, n_rays)[0]).to(tau.dtype)
+
+
+def _packed_log_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) float64 ``log T_i`` in front of each sample and (n_rays,) float64 per-ray sums of ``tau``."""
+    tau64 = tau.double()
+    ray_sum = tau64.new_zeros(n_rays).index_add(0, ray_idx, tau64)
+    before_ray = torch.cumsum(ray_sum, 0) - ray_sum
+    # index_select, not before_ray[ray_idx]: its backward is an index_add_, not an accumulating index_put_.
+    before = (torch.cumsum(tau64, 0) - tau64 - before_ray.index_select(0, ray_idx)).clamp(min=0.0)
+    return -before, ray_sum
+
+
+@dataclass
+class Composite:
+    """What :func:`render_packed` returns.
+
+    Attributes:
+        rgb: (n_rays, 3) colour composited on the background.
+        acc: (n_rays,) opacity ``1 - T_final``.
+        depth: (n_rays,) expected termination distance (``far`` for what passes through).
+        weights: (M,) compositing weight of every sample.
+    """
+
+    rgb: torch.Tensor
+    acc: torch.Tensor
+    depth: torch.Tensor
+    weights: torch.Tensor
+
+
+def render_packed(
+    tau: torch.Tensor,
+    t: torch.Tensor,
+    ray_idx: torch.Tensor,
+    far: torch.Tensor,
+    background: torch.Tensor,
+    rgb_fn: Callable[[torch.Tensor | None, torch.Tensor], torch.Tensor],
+    *,
+    color_thres: float = 0.0,
+) -> Composite:
+    """Composite packed samples into colour, opacity and depth (nerfacc's ``rendering``, packed).
+
+    Colour is asked for only where it counts: with ``color_thres > 0``, samples whose (detached)
+    weight is not above it get no colour (their contribution is below the threshold).
+
+    Args:
+        tau: (M,) optical depths ``sigma * delta``, samples of a ray contiguous and front to back.
+        t: (M,) sample distances.
+        ray_idx: (M,) non-decreasing ray of each sample.
+        far: (n_rays,) where rays that pass through are taken to end (for the depth).
+        background: (3,) or (n_rays, 3) colour behind the content.
+        rgb_fn: ``rgb_fn(sel, ray_idx_sel)`` returns (K, 3) colours of the samples ``sel`` (K,)
+            (None: all M samples), ``ray_idx_sel`` (K,) being their rays.
+        color_thres: weight a sample must exceed to be coloured (0: every sample).
+
+    Returns:
+        :class:`Composite`.
+    """
+    n_rays = far.shape[0]
+    weights, t_final = packed_weights(tau, ray_idx, n_rays)
+    if color_thres > 0.0:
+        sel = torch.nonzero(weights.detach() > color_thres)[:, 0]
+        if sel.numel() == weights.numel():
+            sel = None
+    else:
+        sel = None
+    ray_c, w_c = (ray_idx, weights) if sel is None else (ray_idx.index_select(0, sel), weights.index_select(0, sel))
+    colour = rgb_fn(sel, ray_c)
+    rgb = weights.new_zeros(n_rays, 3).index_add(0, ray_c, w_c[:, None] * colour)
+    rgb = rgb + t_final[:, None] * background
+    depth = weights.new_zeros(n_rays).index_add(0, ray_idx, weights * t) + t_final * far
+    return Composite(rgb=rgb, acc=1.0 - t_final, depth=depth, weights=weights)
