@@ -20,31 +20,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
-import os
 import subprocess
 import tempfile
-import time
 from pathlib import Path
 
-from bench_fit import DEFAULT_LEGO, FIGURES, ROOT, fit_command, stats
-
-
-def run_side(tree: Path, lego: Path, workdir: Path, args: argparse.Namespace, k: int) -> dict:
-    """One fit of checkout ``tree`` in a fresh process; its summary plus wall time and load before it."""
-    out = workdir / f"run{k}"
-    load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
-    start = time.perf_counter()
-    with open(workdir / f"run{k}.log", "w") as log:
-        proc = subprocess.run([str(tree / ".venv" / "bin" / "python"), "-m", "nerfmeta", "fit", *fit_command(lego, out, args, k)],
-                              cwd=tree, stdout=log, stderr=subprocess.STDOUT)
-    if proc.returncode != 0:
-        tail = (workdir / f"run{k}.log").read_text().strip().splitlines()[-1:]
-        raise SystemExit(f"bench_ab: {tree} run {k + 1} failed (exit {proc.returncode}): {tail[0] if tail else 'no output'}")
-    summary = json.loads((out / "summary.json").read_text())
-    summary["wall_s"] = time.perf_counter() - start
-    summary["load"] = load
-    return summary
+from bench_fit import DEFAULT_LEGO, FIGURES, ROOT, fit_command, run_once, stats
 
 
 def commit_of(tree: Path) -> str:
@@ -83,7 +63,7 @@ def main() -> int:
             for name, tree in trees.items():
                 workdir = Path(tmp) / name.split()[0]
                 workdir.mkdir(exist_ok=True)
-                r = run_side(tree, args.lego, workdir, args, k)
+                r = run_once(args.lego, workdir, args, k, tree=tree)
                 sides[name].append(r)
                 print(f"{name} seed {k}: {r['test_psnr']:.2f} dB, {r['iters']} iters, {r['samples_per_ray']:.1f} samples/ray, "
                       f"load before {r['load']}", flush=True)

@@ -61,17 +61,19 @@ def fit_command(lego: Path, out: Path, args: argparse.Namespace, seed: int) -> l
     return cmd
 
 
-def run_once(lego: Path, workdir: Path, args: argparse.Namespace, k: int) -> dict:
-    """One fit in a fresh process; its summary plus the wall time and the load average before it."""
+def run_once(lego: Path, workdir: Path, args: argparse.Namespace, k: int, tree: Path = ROOT) -> dict:
+    """One fit in a fresh process of checkout ``tree`` (its ``.venv``, else this interpreter); its summary plus the
+    wall time and the load average before it."""
     out = workdir / f"run{k}"
     load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     start = time.perf_counter()
     with open(workdir / f"run{k}.log", "w") as log:
-        proc = subprocess.run([sys.executable, "-m", "nerfmeta", "fit", *fit_command(lego, out, args, k)], cwd=ROOT,
+        python = tree / ".venv" / "bin" / "python" if tree != ROOT else Path(sys.executable)
+        proc = subprocess.run([str(python), "-m", "nerfmeta", "fit", *fit_command(lego, out, args, k)], cwd=tree,
                               stdout=log, stderr=subprocess.STDOUT)
     if proc.returncode != 0:
         tail = (workdir / f"run{k}.log").read_text().strip().splitlines()[-1:]
-        raise SystemExit(f"bench_fit: run {k + 1} failed (exit {proc.returncode}): {tail[0] if tail else 'no output'}")
+        raise SystemExit(f"bench_fit: {tree} run {k + 1} failed (exit {proc.returncode}): {tail[0] if tail else 'no output'}")
     summary = json.loads((out / "summary.json").read_text())
     summary["wall_s"] = time.perf_counter() - start
     summary["load"] = load
