@@ -52,8 +52,11 @@ class DemoConfig:
     """Test views per object (other directions than the training views)."""
     iters: int | None = bounded(None, low=1)
     """Iterations of each fit (None: the zoo's)."""
-    eval_every: int | None = bounded(None, low=0)
+    eval_every: int | None = bounded(50, low=0)
     """Test PSNR every this many iterations (None: the zoo's)."""
+    eval_views: int = bounded(2, low=0)
+    """Test views scored at the intermediate evaluations (the final one scores all; 0: all): evaluations are not
+    counted in the fits' time, but they are in the demo's."""
     seed: int = 1000
     """Seed of the objects (the zoo is built from seed 0) and of the fits."""
     compare: tuple[str, ...] = ("scratch", "scratch-nerf")
@@ -116,7 +119,7 @@ def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None, callbacks_for:
     defaults = FitConfig()
     fit = FitConfig(iters=config.iters or zoo_fit.get("iters", 300), batch_rays=zoo_fit.get("batch_rays", defaults.batch_rays),
                     eval_every=config.eval_every or zoo_fit.get("eval_every", 25), checkpoint_every=0, seed=config.seed,
-                    eval_views=zoo_fit.get("eval_views", defaults.eval_views))
+                    eval_views=config.eval_views)
     backbone = zoo.backbone if zoo is not None else "grid"
     model = dict(zoo_fit.get("model", {})) if zoo is not None else {}
     scenes, runs, summaries = {}, {}, {}

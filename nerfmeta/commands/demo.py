@@ -27,7 +27,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "'none' fits from scratch)")
     options.add_config_options(p, DemoConfig, flags={"known_category": "--known", "unseen_category": "--unseen"},
                                metavars={"known_category": "CATEGORY", "unseen_category": "CATEGORY", "downscale": "F"},
-                               defaults={"iters": "the zoo's", "eval_every": "the zoo's"})
+                               defaults={"iters": "the zoo's"})
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.set_defaults(func=run)
 
