@@ -287,6 +287,8 @@ def decide_route(
     if not candidates:
         return Route("scratch", "scratch", 0, f"{why}, and the zoo has no meta-learned initialisation: fitting the {backbone} from scratch",
                      **facts)
+    if scene is None:
+        raise ValueError("decide_route: the scene's facts are needed to check the zoo's priors (see scene_facts)")
     checks: list[Check] = []
     for kind, entry, k, reason in candidates:
         made = prior_checks(priors[entry.name], scene)

@@ -3,7 +3,8 @@
 Each RUN is a fit run folder. Its own fit is the *main* fit, named ``routed`` when its
 ``summary.json`` has a ``route`` (a classify-and-fit run), else by its ``init`` (``scratch``,
 ``category``, ``meta``); every ``RUN/compare/NAME/`` fit run folder beside it is a compared fit
-named ``NAME`` (e.g. ``compare/scratch``, the from-scratch baseline with the same budget).
+named ``NAME`` (e.g. ``compare/scratch``, the voxel grid from scratch given the same wall-clock time, and
+``compare/scratch-nerf``, the MLP from scratch with the routed fit's settings).
 
 ``summary.json`` keys read (all optional except what a fit always writes):
 
