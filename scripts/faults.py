@@ -4,7 +4,7 @@ Each case runs the real ``nerfmeta`` command line in subprocesses on tiny inputs
 spheres scene, and a tiny model zoo built with the recipe of ``tests/conftest.py``), with user
 files planted beside the run folder, inside it (after a kill) and around the scene, then checks:
 
-- **kill**: ``fit``, a routed ``fit --init auto --compare scratch``, ``pretrain category`` and
+- **kill**: ``fit``, a routed ``fit --init auto --backbone nerf --compare scratch-nerf``, ``pretrain category`` and
   ``meta-train`` are killed with SIGKILL at a random moment, then continued with ``--resume``
   (and, when that is refused because nothing could be kept, started again). Half of the fit
   trials kill an ``--overwrite`` of a finished run: the finished run must still be there, whole.
@@ -418,10 +418,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         fit_args = lambda out: ["fit", str(scene), "--out", str(out), *FIT_FAST, "--iters", "12"]  # noqa: E731
         fit_done = lambda out: complete(out, steps_key="iter", final="summary.json", steps=12)  # noqa: E731
         routed_args = lambda out: ["fit", str(new_scene), "--out", str(out), "--init", "auto", "--zoo", str(zoo),  # noqa: E731
-                                   "--compare", "scratch", "--iters", "8", "--eval-every", "4", "--checkpoint-every", "2"]
+                                   "--backbone", "nerf", "--compare", "scratch-nerf", "--iters", "8", "--eval-every", "4", "--checkpoint-every", "2"]
         routed_done = lambda out: (complete(out, steps_key="iter", final="summary.json", steps=8)  # noqa: E731
                                    and "comparison" in json.loads((out / "summary.json").read_text())
-                                   and complete(out / "compare" / "scratch", steps_key="iter", final="summary.json", steps=8))
+                                   and complete(out / "compare" / "scratch-nerf", steps_key="iter", final="summary.json", steps=8))
         category_args = lambda out: ["pretrain", "category", str(collection), "--category", "chair", "--out", str(out),  # noqa: E731
                                      "--backbone", "nerf", "--iters", "12", "--batch-rays", "64", "--checkpoint-every", "3",
                                      *[a for k, v in (("depth", 2), ("width", 16), ("skips", "[]"), ("n_samples", 8))
@@ -435,7 +435,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         meta_done = lambda out: complete(out, steps_key="step", final="summary.json", steps=8)  # noqa: E731
         cases = [
             (KillCase("fit (half of them an --overwrite of a finished run)", fit_args, fit_done, scene), True),
-            (KillCase("fit --init auto --compare scratch", routed_args, routed_done, new_scene), False),
+            (KillCase("fit --init auto --backbone nerf --compare scratch-nerf", routed_args, routed_done, new_scene), False),
             (KillCase("pretrain category", category_args, category_done, collection), False),
             (KillCase("meta-train", meta_args, meta_done, collection), False),
         ]

@@ -17,7 +17,7 @@ from nerfmeta.fit.run import RunConfig, build_initial_model, read_metrics, run_f
 from nerfmeta.report import snapshots as snapshots_module
 from nerfmeta.report.aggregate import route_correct, write_report
 from nerfmeta.report.compare import compare_logs, load_fit_log, write_comparison
-from nerfmeta.report.curves import ahead_of, evaluations, first_reach, mean_band, psnr_at_iter, speedup
+from nerfmeta.report.curves import ahead_in_time, ahead_of, evaluations, first_reach, mean_band, psnr_at_iter, shifted, speedup
 from nerfmeta.report.snapshots import SnapshotWriter, read_snapshots, snapshot_name, to_uint8
 
 TINY_GRID = {"coarse_iters": 6, "growth_steps": [4], "num_voxels": 8000, "coarse_num_voxels": 1000, "occupancy_every": 5}
@@ -112,6 +112,43 @@ def test_route_correct_rules():
     assert route_correct({"category": "chair"}) is None
     assert route_correct({"category": None, "route": {"route": "meta", "known_categories": known}}) is None
     assert route_correct({"category": "chair", "route": {"route": "meta"}}) is None
+    # where the classifier answered, its answer is scored, whatever route the applicability checks left
+    assert route_correct({"category": "chair", "route": {"route": "scratch", "category": "chair", "unknown": False,
+                                                         "known_categories": known}}) is True
+    assert route_correct({"category": "lamp", "route": {"route": "scratch", "category": "car", "unknown": True,
+                                                        "known_categories": known}}) is True
+    assert route_correct({"category": "chair", "route": {"route": "meta", "category": "chair", "unknown": True,
+                                                         "known_categories": known}}) is False
+    # no classifier asked (a zoo of another backbone): not scored
+    assert route_correct({"category": "chair", "route": {"route": "scratch", "known_categories": []}}) is None
+
+
+def test_ahead_in_time_against_the_interpolated_baseline():
+    base = evaluations(_records({10: 10.0, 20: 20.0}, 20, 1.0))  # 10 dB at 10 s, 20 dB at 20 s
+    method = evaluations(_records({5: 30.0, 12: 13.0, 18: 17.0, 30: 30.0}, 30, 1.0))
+    # inside [10, 20] s: 13 dB at 12 s (baseline 12) ahead; 17 dB at 18 s (baseline 18) behind by 1 dB
+    result = ahead_in_time(method, base)
+    assert (result.ahead, result.compared) == (False, 2) and result.behind_db == pytest.approx(1.0)
+    late = shifted(method, 1.0)  # 13 dB at 13 s (baseline 13): not strictly ahead; 17 dB at 19 s: behind by 2
+    assert ahead_in_time(late, base).behind_db == pytest.approx(2.0) and ahead_in_time(late, base).ahead is False
+    assert ahead_in_time(evaluations(_records({40: 1.0}, 40, 1.0)), base).ahead is None
+
+
+def test_wall_clock_axis_adds_classification_and_loading_to_the_routed_fit(tmp_path):
+    """A routed fit that reaches the target at 2.0 s of optimisation after 1.5 s of classifying and 0.5 s of loading
+    reaches it at 4.0 s of wall-clock: against a baseline that takes 4.0 s (+ 0.1 s loading) it is 1.025x, not 2x."""
+    run = _write_fit(tmp_path / "run", {10: 15.0, 20: 20.0}, 20, 0.1, init="category", init_load_s=0.5,
+                     route={"route": "category", "category": "chair", "known_categories": ["chair"], "classify_s": 1.5})
+    base = _write_fit(run / "compare" / "scratch", {20: 15.0, 40: 20.0}, 40, 0.1, backbone="grid", init_load_s=0.1)
+    result = write_comparison(run, {"scratch": base})
+    routed, scratch = result["methods"]["routed"], result["methods"]["scratch"]
+    assert (routed["classify_s"], routed["init_load_s"], routed["start_s"]) == (1.5, 0.5, 2.0)
+    assert routed["time_s"] == 2.0 and routed["wall_s"] == 4.0 and scratch["wall_s"] == pytest.approx(4.1)
+    assert routed["reach_time_s"] == pytest.approx(2.0) and routed["reach_wall_s"] == pytest.approx(4.0)
+    assert routed["speedup_time"] == pytest.approx(2.0) and result["speedup_wall"] == pytest.approx(4.1 / 4.0, abs=1e-4)
+    assert result["baseline_backbone"] == "grid" and "wall-clock" in result["axis"]
+    md = (run / "report.md").read_text()
+    assert "Baseline: **scratch**, a grid fit from scratch" in md and "1.02x" in md
 
 
 # ----- one-scene comparison on hand-made logs -----------------------------------------------------

@@ -58,26 +58,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         parsers={"background": parse_background},
         metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "background": "COLOUR", "device": "DEV"},
         notes={
-            "init": "auto: classify the scene with the model zoo's classifier and start from its category model, or from "
-                    "the meta-learned initialisation for an unknown category, or from scratch when there is no zoo; "
+            "init": "auto: with a zoo holding priors of the fit's backbone, classify the scene with the zoo's classifier and "
+                    "start from its category model, or from the meta-learned initialisation for an unknown category, where "
+                    "that prior applies (backbone, box, resolution, background); else from scratch, saying why; "
                     "category:DIR is a 'nerfmeta pretrain category' model, meta:DIR a 'nerfmeta meta-train' one; a saved "
                     "init keeps its backbone config",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
             "device": "cpu, cuda or cuda:N",
         },
-        defaults={"backbone": "the --init model's backbone, else grid", "init": "auto", "background": "white"},
+        defaults={"backbone": "the --init model's backbone, else grid (also with --init auto: the shipped zoo's "
+                              "priors are nerf ones, so --init auto uses them with --backbone nerf)",
+                  "init": "auto", "background": "white"},
     )
     options.add_config_options(
         p, FitConfig, flags=FIT_FLAGS, metavars={"time_budget_s": "S", "target_psnr": "DB"},
-        notes={name: "with a zoo, the zoo's" for name in ZOO_FIT_FIELDS},
+        notes={name: "with --init auto and a zoo of the fit's backbone, the zoo's" for name in ZOO_FIT_FIELDS},
     )
     p.add_argument("--zoo", default=None, metavar="DIR",
                    help="model zoo for --init auto (default: $NERFMETA_ZOO, else the model_zoo/ shipped with nerfmeta; "
                    "'none' for no zoo); its manifest's hashes are checked")
     p.add_argument("--compare", default="", metavar="BASELINES",
-                   help="also fit these baselines with the identical budget and settings beside an --init auto fit, into "
-                   "RUN/compare/NAME, and report PSNR against iterations and time for all (supported: scratch)")
+                   help="also fit these baselines beside an --init auto fit, into RUN/compare/NAME, and report PSNR against "
+                   "iterations and wall-clock time (the routed fit's classification and loading included) for all: "
+                   "scratch = the voxel grid from scratch with its tuned defaults (the best scratch fit), given the routed "
+                   "fit's --time-budget or else its whole wall-clock time; scratch-nerf = the NeRF MLP from scratch with "
+                   "the routed fit's settings; e.g. --compare scratch,scratch-nerf")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a backbone config field, e.g. --set num_voxels=512000 (repeatable; parsed by the field's "
                    "type and checked like the options; the fields are listed below)")
@@ -185,21 +191,21 @@ def run(args: argparse.Namespace) -> int:
 def run_auto(args: argparse.Namespace) -> int:
     """``--init auto``: classify, route, fit (and the baselines of ``--compare``)."""
     from nerfmeta.report.snapshots import SNAPSHOT_ITERS
-    from nerfmeta.route import classify_and_fit
+    from nerfmeta.route import DEFAULT_BACKBONE, classify_and_fit
     from nerfmeta.zoo import open_zoo
 
     zoo = open_zoo(args.zoo)
-    if zoo is None and args.freeze:
-        raise ConfigError(f"--freeze {args.freeze}: there is no model zoo, so --init auto fits from scratch and has no learned "
-                          "layers to keep; it needs --init category:DIR or meta:DIR (or --zoo DIR)")
-    fit_config = fit_config_from(args, zoo.fit if zoo else None)
-    if zoo is not None and args.backbone is not None and args.backbone != zoo.backbone:
-        raise ConfigError(f"--backbone {args.backbone}: the model zoo in {zoo.root} holds {zoo.backbone} models; drop --backbone, "
-                          f"or use --init scratch")
-    backbone = zoo.backbone if zoo is not None else (args.backbone or "grid")
+    backbone = args.backbone or DEFAULT_BACKBONE
+    priors = zoo if zoo is not None and zoo.backbone == backbone else None  # the zoo's settings go with its priors
+    if priors is None and args.freeze:
+        where = "there is no model zoo" if zoo is None else f"the model zoo in {zoo.root} holds no {backbone} priors"
+        raise ConfigError(f"--freeze {args.freeze}: {where}, so --init auto fits the {backbone} from scratch and has no learned "
+                          f"layers to keep; it needs --init category:DIR or meta:DIR"
+                          + ("" if zoo is None else f" (or --backbone {zoo.backbone})"))
+    fit_config = fit_config_from(args, priors.fit if priors else None)
     model = parse_overrides(args.set, backbone)
-    if zoo is not None:
-        model = {**zoo.fit.get("model", {}), **model}
+    if priors is not None:
+        model = {**priors.fit.get("model", {}), **model}
     compare = tuple(name for name in args.compare.split(",") if name)
     snapshots = tuple(i for i in SNAPSHOT_ITERS if i <= fit_config.iters) if compare else ()
     config = run_config_from(args, backbone=backbone, model=model, fit=fit_config, init="scratch", freeze=0,
@@ -222,8 +228,9 @@ def run_auto(args: argparse.Namespace) -> int:
     finally:
         for bar in bars:
             bar.close()
-    print(f"routed ({summary['route']['route']}): test PSNR {summary['test_psnr']} dB, {summary['iters']} iterations in "
-          f"{summary['time_s']:.1f} s")
+    route = summary["route"]
+    print(f"routed ({route['route']}, {summary['backbone']}): test PSNR {summary['test_psnr']} dB, {summary['iters']} iterations in "
+          f"{summary['time_s']:.1f} s (+ {route.get('classify_s', 0.0):.1f} s routing, {summary.get('init_load_s') or 0.0:.1f} s loading)")
     comparison = summary.get("comparison")
     if comparison:
         for line in comparison.get("headline", []):

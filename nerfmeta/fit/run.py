@@ -28,6 +28,7 @@ import json
 import logging
 import resource
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -280,7 +281,9 @@ def fit_in_folder(
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
     check_fit_fits(config.backbone, config.model_config(scene), scene, batch_rays=config.fit.batch_rays, device=device)
+    t0 = time.perf_counter()
     model, model_config, init = build_initial_model(config, scene, device)
+    init_load_s = round(time.perf_counter() - t0, 3)  # reading and checking a saved start (or drawing a scratch one)
 
     state = resume_fit_state(folder, model) if resume else None
     if not resume:
@@ -307,7 +310,7 @@ def fit_in_folder(
     if snapshots is not None:
         snapshots.finish(model, result.state.step)
         summary = dataclasses.replace(summary, snapshots=snapshots.as_json())
-    summary = dataclasses.replace(summary, route=None if route is None else dict(route))
+    summary = dataclasses.replace(summary, route=None if route is None else dict(route), init_load_s=None if resume else init_load_s)
     write_outputs(folder, summary, result, renders=config.renders)
     if write_summary:
         write_run_summary(folder, summary)
@@ -389,6 +392,9 @@ class FitSummary:
     """Decisions the loop took (e.g. view dependence)."""
     guard_events: list[dict[str, Any]]
     """The divergence guard's rollbacks."""
+    init_load_s: float | None = None
+    """Wall seconds to build the starting model (read and hash-check a saved init, or draw scratch weights);
+    outside ``time_s``; None for a resumed fit (its start was loaded in an earlier process)."""
     snapshots: dict[str, Any] | None = None
     """The snapshot renders on disk (only when ``snapshot_iters`` is set)."""
     route: dict[str, Any] | None = None

@@ -3,7 +3,8 @@
 Each RUN is a fit run folder. Its own fit is the *main* fit, named ``routed`` when its
 ``summary.json`` has a ``route`` (a classify-and-fit run), else by its ``init`` (``scratch``,
 ``category``, ``meta``); every ``RUN/compare/NAME/`` fit run folder beside it is a compared fit
-named ``NAME`` (e.g. ``compare/scratch``, the from-scratch baseline with the same budget).
+named ``NAME`` (e.g. ``compare/scratch``, the voxel grid from scratch given the same wall-clock time, and
+``compare/scratch-nerf``, the MLP from scratch with the routed fit's settings).
 
 ``summary.json`` keys read (all optional except what a fit always writes):
 
@@ -13,12 +14,17 @@ named ``NAME`` (e.g. ``compare/scratch``, the from-scratch baseline with the sam
     - ``category``: the category whose model was used (the classifier's prediction; None unless
       ``route == "category"``);
     - ``known_categories``: the categories the classifier knows (has a category model for);
+    - ``unknown``: the classifier's unknown decision (absent or None when no classifier answered);
     - ``confidence`` (float) and ``probabilities`` ({category: p}): shown, not scored.
 
-A route is *right* when the true category is in ``known_categories`` and the route is
-``category`` with that category, or the true category is not in ``known_categories`` and the
-route is ``meta``; anything else (including ``scratch``) is wrong. Runs without ``route``,
-``route.known_categories`` or a true ``category`` are not scored.
+Where the classifier answered (``unknown`` is true or false), the *classifier's answer* is scored:
+a known true category (in ``known_categories``) is right when classified as itself and not
+flagged unknown, an unknown one when flagged unknown; the route may still be scratch or the meta
+initialisation when a prior does not apply to the scene (``route.checks``), which is not a
+routing error. Without ``unknown`` (older runs) the route is scored: right when a known true
+category is routed to ``category`` with that category, or an unknown one to ``meta``. Runs
+without ``route``, with empty ``route.known_categories`` (no classifier asked, e.g. a zoo of
+another backbone) or without a true ``category`` are not scored.
 
 Runs are grouped by ``route.route`` (``no route`` for plain fits). Curves are test PSNR, mean +-
 sd over the runs of a group (see :func:`nerfmeta.report.curves.mean_band`); speedups are the
@@ -47,9 +53,9 @@ COMPARE_DIR = "compare"
 NO_ROUTE = "no route"
 ALL = "all"
 
-ROUTING_RULE = ("right: a known true category routed to 'category' with that category, or an unknown one "
-                "(not in route.known_categories) routed to 'meta'; runs without route, known_categories or a "
-                "true category are not scored")
+ROUTING_RULE = ("right: a known true category classified as itself and not flagged unknown, or an unknown one "
+                "(not in route.known_categories) flagged unknown (runs without route.unknown: routed to 'category' with "
+                "that category, or to 'meta'); runs without route, known_categories or a true category are not scored")
 
 
 @dataclass(frozen=True)
@@ -107,8 +113,12 @@ def load_report_run(path: str | Path) -> ReportRun:
 def route_correct(summary: Mapping[str, Any]) -> bool | None:
     """Whether the run's route is right (see the module rule); None when it cannot be scored."""
     route, true = summary.get("route"), summary.get("category")
-    if not isinstance(route, Mapping) or true is None or not route.get("route") or route.get("known_categories") is None:
+    if not isinstance(route, Mapping) or true is None or not route.get("route") or not route.get("known_categories"):
         return None
+    if route.get("unknown") is not None:
+        if true in route["known_categories"]:
+            return not route["unknown"] and route.get("category") == true
+        return bool(route["unknown"])
     if true in route["known_categories"]:
         return route["route"] == "category" and route.get("category") == true
     return route["route"] == "meta"
@@ -185,7 +195,10 @@ def summarize_group(runs: Sequence[ReportRun], comparisons: Sequence[dict | None
             "n_compared": len(comps),
             "iters": _speedup_stats([c["speedup_iters"] for c in comps]),
             "time": _speedup_stats([c["speedup_time"] for c in comps]),
+            "wall": _speedup_stats([c.get("speedup_wall") for c in comps]),
             "n_ahead_at_every_eval": sum(1 for c in comps if c["ahead_at_every_eval"]),
+            "n_ahead_wall": sum(1 for c in comps if c.get("ahead_wall")),
+            "behind_wall_db_max": max((c["behind_wall_db"] for c in comps if c.get("behind_wall_db") is not None), default=None),
         }
     return out
 
@@ -216,6 +229,12 @@ def build_report(runs: Sequence[ReportRun], *, baseline: str = "scratch", iters:
     return {"n_runs": len(runs), "baseline": baseline, "methods": methods, "groups": per_group,
             "routing": routing_accuracy(runs), "runs": run_entries, "rules": {**RULES, "routing": ROUTING_RULE,
             "curves": "test PSNR interpolated onto a grid inside every run's evaluated range; mean +- sample sd (ddof=1)"}}
+
+
+def _backbones(report: Mapping[str, Any], baseline: str) -> str:
+    """The baseline's backbone(s) over the runs' comparisons, e.g. ``grid``."""
+    names = sorted({str(r["comparison"].get("baseline_backbone")) for r in report["runs"] if r.get("comparison")})
+    return "/".join(names) if names else "?"
 
 
 def _slug(group: str) -> str:
@@ -285,18 +304,24 @@ def report_markdown(report: Mapping[str, Any]) -> str:
     else:
         lines += ["No run carries a route, its known categories and a true category: routing not scored.", ""]
     lines += [f"## Speedup over {baseline}", "",
-              f"Iterations (time) {baseline} needs to reach its own final test PSNR, over what the main fit needs "
-              "(interpolated between evaluations). Mean and geometric mean over the runs that reach it.", "",
-              "| group | runs | compared | reached | speedup iters mean | geomean | speedup time mean | geomean | ahead at every eval |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              f"Baseline: **{baseline}** ({_backbones(report, baseline)} from scratch). Iterations (time) {baseline} needs to "
+              "reach its own final test PSNR, over what the main fit needs (interpolated between evaluations). Mean and "
+              "geometric mean over the runs that reach it. Wall-clock: optimisation time plus the routed fit's "
+              "classification and loading of its start, the fair axis (iterations of fits with other backbones or ray "
+              "batches are not comparable).", "",
+              "| group | runs | compared | reached | speedup wall-clock mean | geomean | speedup iters mean | geomean | "
+              "speedup time mean | geomean | ahead on wall-clock | most behind (dB) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for g, numbers in report["groups"].items():
         s = numbers["speedup"]
         if s is None:
-            lines.append(f"| {g} | {numbers['n_runs']} | 0 | — | — | — | — | — | — |")
+            lines.append(f"| {g} | {numbers['n_runs']} | 0 |" + " — |" * 9)
             continue
-        lines.append(f"| {g} | {numbers['n_runs']} | {s['n_compared']} | {s['iters']['n_reached']} | {_x(s['iters']['mean'])} | "
+        wall = s.get("wall") or {}
+        lines.append(f"| {g} | {numbers['n_runs']} | {s['n_compared']} | {s['iters']['n_reached']} | {_x(wall.get('mean'))} | "
+                     f"{_x(wall.get('geomean'))} | {_x(s['iters']['mean'])} | "
                      f"{_x(s['iters']['geomean'])} | {_x(s['time']['mean'])} | {_x(s['time']['geomean'])} | "
-                     f"{s['n_ahead_at_every_eval']}/{s['n_compared']} |")
+                     f"{s.get('n_ahead_wall', 0)}/{s['n_compared']} | {_f(s.get('behind_wall_db_max'))} |")
     lines += ["", "## Final test PSNR (dB), mean ± sd over runs", "",
               "| group | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
     for g, numbers in report["groups"].items():
@@ -310,11 +335,13 @@ def report_markdown(report: Mapping[str, Any]) -> str:
             else:
                 cells.append(f"{v['final_test_psnr_mean']:.2f} ± {v['final_test_psnr_sd']:.2f} (n={v['n_runs']})")
         lines.append(f"| {g} | " + " | ".join(cells) + " |")
-    lines += ["", "## Curves", "", f"Rule: {report['rules']['curves']}. Time is optimisation time only.", ""]
+    lines += ["", "## Curves", "", f"Rule: {report['rules']['curves']}. Time is optimisation time only (the per-run "
+              "report.md plots wall-clock).", ""]
     for g, numbers in report["groups"].items():
         lines += [f"### {g}", ""] + [f"![{p}]({p})" for p in numbers.get("plots", [])] + [""]
     lines += ["## Runs", "", "| run | scene | true category | route | right | " + " | ".join(methods)
-              + " | speedup iters | speedup time | ahead at every eval |", "|---|---|---|---|---|" + "---|" * (len(methods) + 3)]
+              + " | speedup wall-clock | speedup iters | speedup time | ahead at every eval |",
+              "|---|---|---|---|---|" + "---|" * (len(methods) + 4)]
     for r in report["runs"]:
         route = r["route"] or {}
         routed = route.get("route") or "—"
@@ -323,7 +350,7 @@ def report_markdown(report: Mapping[str, Any]) -> str:
         right = {True: "yes", False: "no", None: "—"}[r["route_correct"]]
         psnrs = [_f(r["final_test_psnr"].get(m)) for m in methods]
         c = r["comparison"]
-        tail = ["—", "—", "—"] if c is None else [_x(c["speedup_iters"]), _x(c["speedup_time"]),
+        tail = ["—", "—", "—", "—"] if c is None else [_x(c.get("speedup_wall")), _x(c["speedup_iters"]), _x(c["speedup_time"]),
                                                   {True: "yes", False: "no", None: "—"}[c["ahead_at_every_eval"]]]
         lines.append(f"| {r['run']} | {Path(str(r['scene'])).name} | {r['category'] or '—'} | {routed} | {right} | "
                      + " | ".join(psnrs + tail) + " |")

@@ -4,12 +4,20 @@
 (rules in :mod:`nerfmeta.report.curves`); :func:`write_comparison` also writes the report files
 into a folder (by default the routed run's own ``RUN/``)::
 
-    psnr_vs_iter.png, psnr_vs_time.png       every method on one plot (replacing the single-fit ones)
+    psnr_vs_iter.png, psnr_vs_time.png       every method on one plot (replacing the single-fit ones); the
+                                             time plot is on the wall-clock axis (see below)
     comparison_renders_view_VVV.png          one image per snapshot view: rows are snapshot
                                              iterations, columns ground truth | baseline | method(s)
     report.md                                tables and the images above
 
 and stores the returned dict in ``RUN/summary.json["comparison"]``.
+
+Two time axes: *optimisation time* (``time_s`` of ``metrics.jsonl``, the fit loop's own) and
+*wall-clock* (``wall_s``): the optimisation time plus what a fit spent before its first step, its
+``start_s`` = the routing of a routed fit (``summary["route"]["classify_s"]``: reading the scene,
+classifying it) + building its start (``summary["init_load_s"]``: reading and checking a saved
+init). A route pays for its classification and loading on the wall-clock axis; it is the axis the
+headline and the ``*_wall`` numbers use.
 """
 
 from __future__ import annotations
@@ -24,7 +32,8 @@ import imageio.v3 as iio
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import read_metrics, write_bytes_atomic, write_json
-from nerfmeta.report.curves import Evaluations, Reach, ahead_of, evaluations, first_reach, psnr_at_iter, speedup
+from nerfmeta.report.curves import (Evaluations, Reach, ahead_in_time, ahead_of, evaluations, first_reach, psnr_at_iter, shifted,
+                                    speedup)
 from nerfmeta.report.plots import plot_image_grid, plot_psnr_curves
 from nerfmeta.report.snapshots import SNAPSHOT_DIR, read_snapshots, target_name
 
@@ -42,6 +51,10 @@ RULES = {
     "speedup": "baseline's iterations (or seconds) to the target over the method's; null if the method never reaches it",
     "ahead": "strictly higher test PSNR at every iteration where both fits were evaluated; null if none is shared",
     "time": "optimisation time only (evaluation and rendering excluded), as logged in metrics.jsonl",
+    "wall": "wall-clock time: optimisation time plus start_s (a routed fit's classification, route.classify_s, plus building "
+            "its start, init_load_s); reach_wall_s, speedup_wall and the psnr_vs_time plot use it",
+    "ahead_wall": "strictly above the baseline's test-PSNR curve (linear in wall-clock time) at every evaluation of the method "
+                  "inside the baseline's evaluated time range; behind_wall_db: the largest gap below it there",
 }
 
 
@@ -63,6 +76,31 @@ class FitLog:
         if self.summary.get("iters") is not None:
             return int(self.summary["iters"])
         return int(self.records[-1]["iter"]) if self.records else 0
+
+    @property
+    def classify_s(self) -> float:
+        """Seconds a routed fit spent routing before its fit (0 for a plain fit)."""
+        route = self.summary.get("route")
+        return float(route.get("classify_s") or 0.0) if isinstance(route, Mapping) else 0.0
+
+    @property
+    def init_load_s(self) -> float:
+        """Seconds spent building the starting model (0 where not recorded)."""
+        return float(self.summary.get("init_load_s") or 0.0)
+
+    @property
+    def start_s(self) -> float:
+        """Wall seconds before the first step: :attr:`classify_s` + :attr:`init_load_s`."""
+        return self.classify_s + self.init_load_s
+
+    @property
+    def wall_evaluations(self) -> Evaluations:
+        """The evaluations on the wall-clock axis (times shifted by :attr:`start_s`)."""
+        return shifted(self.evaluations, self.start_s)
+
+    def wall_records(self) -> list[dict[str, Any]]:
+        """The ``metrics.jsonl`` records with ``wall_s`` (``time_s`` + :attr:`start_s`) added."""
+        return [{**r, "wall_s": float(r["time_s"]) + self.start_s} for r in self.records]
 
     @property
     def final_test_psnr(self) -> float | None:
@@ -114,10 +152,13 @@ def compare_logs(
                          test_psnr_at_iter {N: dB|null}, test_psnr_at_iter_from {N: evaluated iter|null},
                          reach_iter, reach_time_s, reach_before_first_eval, reached,
                          speedup_iters, speedup_time,
-                         and for non-baseline methods: ahead_at_every_eval, not_ahead_at, compared_iters}}
+                         backbone, classify_s, init_load_s, start_s, wall_s, reach_wall_s, speedup_wall,
+                         and for non-baseline methods: ahead_at_every_eval, not_ahead_at, compared_iters,
+                         ahead_wall, behind_wall_db}}
 
     and, when ``method`` names one of them, its ``method``, ``ahead_at_every_eval``,
-    ``not_ahead_at``, ``speedup_iters`` and ``speedup_time`` again at the top level.
+    ``not_ahead_at``, ``speedup_iters``, ``speedup_time``, ``speedup_wall``, ``ahead_wall`` and
+    ``behind_wall_db`` again at the top level. ``axis`` names the time axis of the ``*_wall`` numbers.
     """
     if baseline not in logs:
         raise ConfigError(f"baseline {baseline!r}: not among the compared fits ({', '.join(logs)})")
@@ -127,11 +168,16 @@ def compare_logs(
     base_ev = base.evaluations
     target = base.final_test_psnr
     base_reach = None if target is None else first_reach(base_ev, target)
+    base_wall = base.wall_evaluations
+    base_reach_wall = None if target is None else first_reach(base_wall, target)
     methods: dict[str, Any] = {}
     for name, fit_log in logs.items():
         ev = fit_log.evaluations
         at = {int(n): psnr_at_iter(ev, int(n), fit_log.last_iter) for n in iters}
         reach = None if target is None else first_reach(ev, target)
+        wall = fit_log.wall_evaluations
+        reach_wall = None if target is None else first_reach(wall, target)
+        time_s = fit_log.summary.get("time_s")
         entry: dict[str, Any] = {
             "run": str(fit_log.path),
             "init": fit_log.summary.get("init"),
@@ -146,18 +192,29 @@ def compare_logs(
             "reach_before_first_eval": reach is not None and reach.before_first_eval,
             "speedup_iters": _r(speedup(_reach_x(base_reach, "iter"), _reach_x(reach, "iter")), 4),
             "speedup_time": _r(speedup(_reach_x(base_reach, "time_s"), _reach_x(reach, "time_s")), 4),
+            "backbone": fit_log.summary.get("backbone"),
+            "classify_s": _r(fit_log.classify_s, 3),
+            "init_load_s": _r(fit_log.init_load_s, 3),
+            "start_s": _r(fit_log.start_s, 3),
+            "wall_s": None if time_s is None else _r(float(time_s) + fit_log.start_s, 3),
+            "reach_wall_s": None if reach_wall is None else round(reach_wall.time_s, 4),
+            "speedup_wall": _r(speedup(_reach_x(base_reach_wall, "time_s"), _reach_x(reach_wall, "time_s")), 4),
         }
         if name != baseline:
             ahead = ahead_of(ev, base_ev)
+            in_time = ahead_in_time(wall, base_wall)
             entry.update(ahead_at_every_eval=ahead.ahead, not_ahead_at=list(ahead.not_ahead_at),
-                         compared_iters=list(ahead.compared_iters))
+                         compared_iters=list(ahead.compared_iters), ahead_wall=in_time.ahead,
+                         behind_wall_db=_r(in_time.behind_db, 4))
         methods[name] = entry
-    out: dict[str, Any] = {"baseline": baseline, "target_psnr": _r(target, 4), "iters": [int(n) for n in iters],
+    out: dict[str, Any] = {"baseline": baseline, "baseline_backbone": base.summary.get("backbone"), "target_psnr": _r(target, 4),
+                           "iters": [int(n) for n in iters], "axis": "wall-clock (classification and loading included)",
                            "rules": RULES, "methods": methods}
     if method is not None:
         m = methods[method]
         out.update(method=method, ahead_at_every_eval=m.get("ahead_at_every_eval"), not_ahead_at=m.get("not_ahead_at", []),
-                   speedup_iters=m["speedup_iters"], speedup_time=m["speedup_time"])
+                   speedup_iters=m["speedup_iters"], speedup_time=m["speedup_time"], speedup_wall=m["speedup_wall"],
+                   ahead_wall=m.get("ahead_wall"), behind_wall_db=m.get("behind_wall_db"))
     return out
 
 
@@ -201,10 +258,10 @@ def write_comparison(
     logs = {name: main, **{k: load_fit_log(v) for k, v in methods.items()}}
     result = compare_logs(logs, baseline=baseline, method=name, iters=iters)
     order = [baseline, *[k for k in logs if k != baseline]]
-    curves = {k: logs[k].records for k in order}
-    title = f"{Path(str(logs[name].summary.get('scene', run_dir))).name}: " + " vs ".join(order)
-    plot_psnr_curves(curves, "iter", out_dir / "psnr_vs_iter.png", title=title)
-    plot_psnr_curves(curves, "time_s", out_dir / "psnr_vs_time.png", title=title)
+    labels = {k: _label(k, logs[k]) for k in order}
+    title = f"{Path(str(logs[name].summary.get('scene', run_dir))).name}: " + " vs ".join(labels.values())
+    plot_psnr_curves({labels[k]: logs[k].records for k in order}, "iter", out_dir / "psnr_vs_iter.png", title=title)
+    plot_psnr_curves({labels[k]: logs[k].wall_records() for k in order}, "wall_s", out_dir / "psnr_vs_time.png", title=title)
     result["renders"] = write_render_grids({k: logs[k] for k in order}, out_dir)
     result["report"] = "report.md"
     write_bytes_atomic(out_dir / "report.md", comparison_markdown(result, logs[name].summary, title).encode())
@@ -213,6 +270,12 @@ def write_comparison(
         summary["comparison"] = result
         write_json(run_dir / "summary.json", summary)
     return result
+
+
+def _label(name: str, fit_log: FitLog) -> str:
+    """``name (backbone)`` for plots and tables."""
+    backbone = fit_log.summary.get("backbone")
+    return f"{name} ({backbone})" if backbone else name
 
 
 def write_render_grids(logs: Mapping[str, FitLog], out_dir: Path) -> list[str]:
@@ -280,10 +343,16 @@ def comparison_markdown(result: Mapping[str, Any], summary: Mapping[str, Any], t
         lines += [f"Route: **{route.get('route', '?')}**" + (f" ({route['category']})" if route.get("category") else "")
                   + ("" if conf is None else f", confidence {conf:.3f}")
                   + (f"; true category: {summary['category']}" if summary.get("category") else ""), ""]
-    lines += ["| method | init | iterations | optimisation time (s) | final test PSNR (dB) |", "|---|---|---|---|---|"]
+    base = methods[baseline]
+    lines += [f"Baseline: **{baseline}**, a {base.get('backbone') or '?'} fit from {base['init']}. Time axis of the "
+              "speed-ups and the time plot: **wall-clock**, the optimisation time plus what a fit spent before its first "
+              "step (a routed fit's classification and the loading of its start).", "",
+              "| method | backbone | init | iterations | classify (s) | load start (s) | optimisation time (s) | wall-clock (s) "
+              "| final test PSNR (dB) |", "|---|---|---|---|---|---|---|---|---|"]
     for k in names:
         m = methods[k]
-        lines.append(f"| {k} | {m['init']} | {m['iters']} | {_fmt(m['time_s'])} | {_fmt(m['final_test_psnr'])} |")
+        lines.append(f"| {k} | {m.get('backbone') or '—'} | {m['init']} | {m['iters']} | {_fmt(m.get('classify_s'))} | "
+                     f"{_fmt(m.get('init_load_s'))} | {_fmt(m['time_s'])} | {_fmt(m.get('wall_s'))} | {_fmt(m['final_test_psnr'])} |")
     its = result["iters"]
     lines += ["", "## Test PSNR at fixed iterations (dB)", "",
               "Last evaluation at or before N (no interpolation; `@k`: the evaluation was at iteration k < N); "
@@ -298,14 +367,18 @@ def comparison_markdown(result: Mapping[str, Any], summary: Mapping[str, Any], t
     lines += ["", f"## Reaching {baseline}'s final test PSNR ({_fmt(result['target_psnr'])} dB)", "",
               "Linear interpolation between the evaluations either side of the first crossing "
               "(`≤`: already reached at the first evaluation, an upper bound); never: not reached. "
-              f"Speedup: {baseline}'s iterations (time) over the method's.", "",
-              "| method | iterations | optimisation time (s) | speedup (iterations) | speedup (time) |", "|---|---|---|---|---|"]
+              f"Speedup: {baseline}'s iterations (time) over the method's; iterations of fits with other backbones or "
+              "ray batches are not comparable, wall-clock is.", "",
+              "| method | iterations | optimisation time (s) | wall-clock (s) | speedup (iterations) | speedup (time) "
+              "| speedup (wall-clock) |", "|---|---|---|---|---|---|---|"]
     for k in names:
         m = methods[k]
         bound = "≤ " if m["reach_before_first_eval"] else ""
         it = "never" if not m["reached"] else bound + _fmt(m["reach_iter"], 1)
         t = "never" if not m["reached"] else bound + _fmt(m["reach_time_s"], 2)
-        lines.append(f"| {k} | {it} | {t} | {_times(m['speedup_iters'])} | {_times(m['speedup_time'])} |")
+        w = "never" if not m["reached"] else bound + _fmt(m.get("reach_wall_s"), 2)
+        lines.append(f"| {k} | {it} | {t} | {w} | {_times(m['speedup_iters'])} | {_times(m['speedup_time'])} | "
+                     f"{_times(m.get('speedup_wall'))} |")
     lines.append("")
     for k in names[1:]:
         m = methods[k]
@@ -316,8 +389,12 @@ def comparison_markdown(result: Mapping[str, Any], summary: Mapping[str, Any], t
         else:
             lines.append(f"- {k} is **not** ahead of {baseline} at every evaluated iteration: not at "
                          + ", ".join(str(i) for i in m["not_ahead_at"]) + f" (of {len(m['compared_iters'])}).")
+        if m.get("ahead_wall") is True:
+            lines.append(f"- wall-clock: {k} is above {baseline}'s curve at every one of its evaluations in {baseline}'s time range.")
+        elif m.get("ahead_wall") is False:
+            lines.append(f"- wall-clock: {k} is **behind** {baseline}'s curve, by up to {_fmt(m.get('behind_wall_db'))} dB.")
     lines += ["", "## Curves", "", "Thin lines: train PSNR (smoothed); markers: test PSNR at evaluations. "
-              "Time is optimisation time only.", "", "![PSNR vs iteration](psnr_vs_iter.png)", "",
+              "Time is wall-clock: optimisation time plus each fit's classification and loading of its start.", "", "![PSNR vs iteration](psnr_vs_iter.png)", "",
               "![PSNR vs time](psnr_vs_time.png)", ""]
     if result.get("renders"):
         lines += ["## Renders", "", "Columns: ground truth | " + " | ".join(names) + "; rows: iterations "

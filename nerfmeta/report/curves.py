@@ -139,6 +139,40 @@ def ahead_of(method: Evaluations, baseline: Evaluations) -> Ahead:
     return Ahead(None if not compared else not behind, behind, compared)
 
 
+def shifted(ev: Evaluations, seconds: float) -> Evaluations:
+    """``ev`` with ``seconds`` added to every time (optimisation time -> wall-clock time of a fit that began
+    ``seconds`` after its clock started, e.g. after classifying the scene and loading its start)."""
+    return Evaluations(ev.iters, ev.time_s + float(seconds), ev.psnr)
+
+
+@dataclass(frozen=True)
+class AheadInTime:
+    """A fit against a baseline on the time axis, at the fit's evaluations inside the baseline's evaluated time range.
+
+    Attributes:
+        ahead: strictly above the baseline's curve (linearly interpolated in time) at every such
+            evaluation; None when there is none.
+        behind_db: the largest amount the fit is below the baseline there (0.0 if never below; None without any).
+        compared: how many evaluations were compared.
+    """
+
+    ahead: bool | None
+    behind_db: float | None
+    compared: int
+
+
+def ahead_in_time(method: Evaluations, baseline: Evaluations) -> AheadInTime:
+    """Compare ``method`` with ``baseline`` on the time axis (see :class:`AheadInTime`)."""
+    if not len(method) or not len(baseline):
+        return AheadInTime(None, None, 0)
+    t = method.time_s
+    inside = (t >= baseline.time_s[0]) & (t <= baseline.time_s[-1])
+    if not inside.any():
+        return AheadInTime(None, None, 0)
+    gap = np.interp(t[inside], baseline.time_s, baseline.psnr) - method.psnr[inside]
+    return AheadInTime(bool((gap < 0).all()), float(max(gap.max(), 0.0)), int(inside.sum()))
+
+
 @dataclass(frozen=True)
 class Band:
     """Mean and spread of several fits' test-PSNR curves on a shared grid.

@@ -17,6 +17,10 @@ from nerfmeta.io import atomic_path  # noqa: E402
 if TYPE_CHECKING:
     from nerfmeta.report.curves import Band
 
+X_LABELS = {"iter": "iteration", "time_s": "optimisation time (s)",
+            "wall_s": "wall-clock time (s), classification and loading included"}
+"""Axis label of each x key."""
+
 
 def save_figure(fig, path: str | os.PathLike) -> None:
     """Lay out a pyplot figure, write it as PNG atomically (a temporary file renamed into place), and close it."""
@@ -34,7 +38,7 @@ def plot_psnr_curves(
     Args:
         runs: method name -> metrics records (``metrics.jsonl`` lines: ``iter``, ``time_s``,
             ``train_psnr`` and, where evaluated, ``test_psnr``).
-        x_key: ``"iter"`` or ``"time_s"``.
+        x_key: a key of :data:`X_LABELS` (``"iter"``, ``"time_s"``, ``"wall_s"``).
         path: PNG to write (atomically).
     """
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
@@ -48,7 +52,7 @@ def plot_psnr_curves(
         if tests:
             tx, ty = zip(*tests)
             ax.plot(tx, ty, "o--", color=color, ms=4, lw=1, label=f"{name} (test)")
-    ax.set_xlabel("iteration" if x_key == "iter" else "optimisation time (s)")
+    ax.set_xlabel(X_LABELS[x_key])
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3)
     if title:
@@ -132,7 +136,7 @@ def plot_psnr_bands(
     Args:
         bands: method name -> :class:`~nerfmeta.report.curves.Band` (``x``, ``mean``, ``sd``,
             ``n_runs``); None entries are skipped.
-        x_key: ``"iter"`` or ``"time_s"``.
+        x_key: a key of :data:`X_LABELS` (``"iter"``, ``"time_s"``, ``"wall_s"``).
         path: PNG to write (atomically).
     """
     fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=110)
@@ -143,7 +147,7 @@ def plot_psnr_bands(
         ax.plot(band.x, band.mean, "o-" if len(band.x) < 30 else "-", color=color, ms=3, lw=1.4,
                 label=f"{name} (n={band.n_runs})")
         ax.fill_between(band.x, band.mean - band.sd, band.mean + band.sd, color=color, alpha=0.2, lw=0)
-    ax.set_xlabel("iteration" if x_key == "iter" else "optimisation time (s)")
+    ax.set_xlabel(X_LABELS[x_key])
     ax.set_ylabel("test PSNR (dB), mean ± sd")
     ax.grid(alpha=0.3)
     if title:
