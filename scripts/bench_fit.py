@@ -10,7 +10,7 @@ run, the median and the spread (min..max), and with ``--write`` replaces the sub
 backbone in the ``## Fit on lego`` section of BENCHMARKS.md (the other subsection is kept).
 
 Targets: grid, median test PSNR >= 28 dB in 60 s and <= 40 samples evaluated per ray; nerf,
-test PSNR after 600 s (aim: >= 24 dB).
+test PSNR after 600 s (issue 13: >= 26 dB with the occupancy estimator).
 
 Usage::
 
@@ -39,7 +39,7 @@ MACHINE = "2-core CPU, no GPU"
 FIGURES = (("test_psnr", "test PSNR (dB)", 2), ("time_s", "optimisation time (s)", 1), ("iters", "iterations", 0),
            ("samples_per_ray", "samples per ray (test)", 1), ("peak_rss_mb", "peak RSS (MB)", 0),
            ("wall_s", "wall time incl. loading and evaluation (s)", 1))
-TARGETS = {"grid": (("test_psnr", ">=", 28.0), ("samples_per_ray", "<=", 40.0)), "nerf": (("test_psnr", ">=", 24.0),)}
+TARGETS = {"grid": (("test_psnr", ">=", 28.0), ("samples_per_ray", "<=", 40.0)), "nerf": (("test_psnr", ">=", 26.0),)}
 INTRO = [
     SECTION,
     "",
