@@ -13,7 +13,8 @@ Scores (names as in :data:`classifier.config.SCORES`):
   feature (over its views) to the nearest class, under the spread of the training scenes' mean
   features (:class:`FeatureStats`).
 - ``class_mahalanobis``: the same distances, each divided by its class's typical distance on
-  *validation* scenes (``FeatureStats.class_scale``), and minus the log of the smallest ratio. The
+  *validation* scenes, shrunk towards the pooled one (``FeatureStats.class_scale``,
+  :func:`fit_class_scale`), and minus the log of the smallest ratio. The
   training scenes' spread is one pooled covariance, and the network fits its training scenes more
   tightly than new ones by a margin that differs per class (measured 1.9x for cars, 3.7x for lamps,
   4.5x for tables: categories with sub-types generalise least), so the pooled distance flags new
@@ -47,8 +48,8 @@ class FeatureStats:
         within: (dim, dim) covariance of view features around their scene mean (shrunk).
         reference_views: (,) how many views each training scene mean averaged (harmonic mean).
         class_scale: (n_classes,) mean squared distance of known validation scenes to their own
-            class mean (see :func:`fit_class_scale`), needed by ``class_mahalanobis``; None in
-            classifiers saved before it existed.
+            class mean, shrunk towards the pooled mean (see :func:`fit_class_scale`), needed by
+            ``class_mahalanobis``; None in classifiers saved before it existed.
     """
 
     means: torch.Tensor
