@@ -13,7 +13,8 @@ Scores (names as in :data:`classifier.config.SCORES`):
   feature (over its views) to the nearest class, under the spread of the training scenes' mean
   features (:class:`FeatureStats`).
 - ``class_mahalanobis``: the same distances, each divided by its class's typical distance on
-  *validation* scenes (``FeatureStats.class_scale``), and minus the log of the smallest ratio. The
+  *validation* scenes, shrunk towards the pooled one (``FeatureStats.class_scale``,
+  :func:`fit_class_scale`), and minus the log of the smallest ratio. The
   training scenes' spread is one pooled covariance, and the network fits its training scenes more
   tightly than new ones by a margin that differs per class (measured 1.9x for cars, 3.7x for lamps,
   4.5x for tables: categories with sub-types generalise least), so the pooled distance flags new
@@ -22,6 +23,7 @@ Scores (names as in :data:`classifier.config.SCORES`):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -46,8 +48,8 @@ class FeatureStats:
         within: (dim, dim) covariance of view features around their scene mean (shrunk).
         reference_views: (,) how many views each training scene mean averaged (harmonic mean).
         class_scale: (n_classes,) mean squared distance of known validation scenes to their own
-            class mean (see :func:`fit_class_scale`), needed by ``class_mahalanobis``; None in
-            classifiers saved before it existed.
+            class mean, shrunk towards the pooled mean (see :func:`fit_class_scale`), needed by
+            ``class_mahalanobis``; None in classifiers saved before it existed.
     """
 
     means: torch.Tensor
@@ -142,54 +144,118 @@ def class_mahalanobis_from_distances(distances: torch.Tensor, class_scale: torch
     return -torch.log(ratio.min(dim=-1).values.clamp_min(1e-12))
 
 
-def fit_class_scale(distances: torch.Tensor, labels: torch.Tensor, n_classes: int) -> torch.Tensor:
-    """Each class's typical squared distance: the mean, over known scenes of the class, of the distance to its own mean.
+def fit_class_scale(
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+) -> torch.Tensor:
+    """Each class's typical squared distance, shrunk towards the pooled one.
 
-    A class with no scene in ``distances`` gets the mean of the other classes' scales.
+    With ``S`` the mean own-class distance over all the scenes given (pooled), class ``c`` with
+    ``n_c`` scenes gets ``(sum of its own distances + prior_scenes * S) / (n_c + prior_scenes)``:
+    the pooled scale counts as ``prior_scenes`` extra scenes. ``prior_scenes = 0`` is the plain
+    per-class mean (a class with no scene then gets the mean of the other classes' scales), and a
+    class seen in two scenes that happen to lie close to its mean no longer gets a scale so small
+    that every new scene of it is flagged.
 
     Args:
         distances: (n_scenes, n_classes) squared distances of validation scenes to each class mean.
         labels: (n_scenes,) the class of each scene.
         n_classes: number of classes.
+        prior_scenes: weight of the pooled scale, in scenes, >= 0.
 
     Returns:
         (n_classes,) positive float64 scales.
     """
     if distances.shape[0] < 1:
         raise ValueError("the class scale needs at least one known validation scene")
+    if not prior_scenes >= 0.0:
+        raise ValueError(f"prior_scenes must be >= 0, got {prior_scenes}")
     own = distances.double()[torch.arange(distances.shape[0]), labels]
-    scale = torch.full((n_classes,), float("nan"), dtype=torch.float64)
-    for c in range(n_classes):
-        if bool((labels == c).any()):
-            scale[c] = own[labels == c].mean()
-    scale = torch.where(torch.isnan(scale), scale[~torch.isnan(scale)].mean(), scale)
+    sums = torch.zeros(n_classes, dtype=torch.float64).index_add_(0, labels, own)
+    counts = torch.bincount(labels, minlength=n_classes).double()
+    if prior_scenes > 0.0:
+        scale = (sums + prior_scenes * own.mean()) / (counts + prior_scenes)
+    else:
+        scale = sums / counts.clamp_min(1)
+        scale = torch.where(counts > 0, scale, scale[counts > 0].mean())
     return scale.clamp_min(1e-12)
 
 
-def leave_one_out_class_scores(distances: torch.Tensor, labels: torch.Tensor, class_scale: torch.Tensor) -> torch.Tensor:
-    """``class_mahalanobis`` of the scenes the scale was fitted on, each without its own say in its class's scale.
+def leave_one_out_scales(
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+) -> torch.Tensor:
+    """Row ``i``: :func:`fit_class_scale` of all the scenes but scene ``i`` (its pooled share left out too).
+
+    Args:
+        distances: (n_scenes, n_classes), n_scenes >= 2.
+        labels: (n_scenes,).
+        n_classes: number of classes.
+        prior_scenes: as in :func:`fit_class_scale`.
+
+    Returns:
+        (n_scenes, n_classes) float64 scales.
+    """
+    n = distances.shape[0]
+    if n < 2:
+        raise ValueError("leave-one-out scales need at least two known validation scenes")
+    keep = ~torch.eye(n, dtype=torch.bool)
+    return torch.stack([fit_class_scale(distances[keep[i]], labels[keep[i]], n_classes, prior_scenes) for i in range(n)])
+
+
+def leave_one_out_class_scores(
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+) -> torch.Tensor:
+    """``class_mahalanobis`` of the scenes the scale is fitted on, each scored by scales fitted without it.
 
     A scene scored by a scale that includes its own distance looks more typical than a new scene
     of the class would; calibrating a threshold on such scores flags too many new scenes (measured:
-    false unknowns 5-8 % of known test scenes against 0 % with these scores). A class with one
-    scene keeps its scale.
+    false unknowns 5-8 % of known test scenes against 0 % with these scores). Without the prior, a
+    class with one scene scores that scene against the other classes' mean scale.
 
     Args:
-        distances: (n_scenes, n_classes) distances of the scenes :func:`fit_class_scale` was given.
+        distances: (n_scenes, n_classes) distances of the known validation scenes, n_scenes >= 2.
         labels: (n_scenes,) their classes.
-        class_scale: (n_classes,) what :func:`fit_class_scale` returned for them.
+        n_classes: number of classes.
+        prior_scenes: as in :func:`fit_class_scale`.
 
     Returns:
         (n_scenes,) float64 scores.
     """
-    d = distances.double()
-    own = d[torch.arange(d.shape[0]), labels]
-    counts = torch.bincount(labels, minlength=class_scale.numel()).double()[labels]
-    total = class_scale.double()[labels] * counts
-    loo = torch.where(counts > 1, (total - own) / (counts - 1).clamp_min(1), class_scale.double()[labels]).clamp_min(1e-12)
-    scales = class_scale.double().expand_as(d).clone()
-    scales[torch.arange(d.shape[0]), labels] = loo
-    return class_mahalanobis_from_distances(d, scales)
+    return class_mahalanobis_from_distances(distances.double(), leave_one_out_scales(distances, labels, n_classes, prior_scenes))
+
+
+def scale_prior_loss(distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float) -> float:
+    """Mean leave-one-out negative log-likelihood of the own-class distances, ``log s + d / s``.
+
+    Each scene's distance ``d`` to its own class is scored by its class's scale ``s`` fitted
+    without it; the loss is that of an exponential (chi-square-like) model of the distance with
+    mean ``s``, smallest for the prior that predicts unseen scenes' distances best.
+
+    Args:
+        distances: (n_scenes, n_classes), n_scenes >= 2.
+        labels: (n_scenes,).
+        n_classes: number of classes.
+        prior_scenes: as in :func:`fit_class_scale`.
+    """
+    rows = torch.arange(distances.shape[0])
+    own = distances.double()[rows, labels].clamp_min(1e-12)
+    s = leave_one_out_scales(distances, labels, n_classes, prior_scenes)[rows, labels]
+    return float((torch.log(s) + own / s).mean())
+
+
+def select_scale_prior(
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, grid: tuple[float, ...]
+) -> float:
+    """The prior of ``grid`` with the smallest :func:`scale_prior_loss` (ties: the larger prior, the safer one).
+
+    Args:
+        distances: (n_scenes, n_classes) known validation scenes, n_scenes >= 2.
+        labels: (n_scenes,).
+        n_classes: number of classes.
+        grid: candidate priors, in scenes (each >= 0).
+    """
+    losses = {k: scale_prior_loss(distances, labels, n_classes, k) for k in grid}
+    best = min(losses.values())
+    return max(k for k, v in losses.items() if v <= best + 1e-12)
 
 
 def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: FeatureStats | None) -> dict[str, float]:
@@ -215,21 +281,75 @@ def is_unknown(score: float | torch.Tensor, threshold: float) -> bool | torch.Te
     return score < threshold
 
 
-def calibrate_threshold(known_scores: torch.Tensor, keep_fraction: float) -> float:
+def calibrate_threshold(known_scores: torch.Tensor, keep_fraction: float, rule: str = "quantile") -> float:
     """Threshold that keeps ``keep_fraction`` of the known scenes (scores at or above it).
 
-    The threshold is the ``1 - keep_fraction`` quantile of the scores (linear interpolation);
-    ``keep_fraction = 1`` gives the smallest score, so every calibration scene is kept.
+    ``quantile``: the ``1 - keep_fraction`` quantile of the scores (linear interpolation);
+    ``keep_fraction = 1`` gives the smallest score, so every calibration scene is kept. With few
+    scenes this is about their smallest score, and a new scene falls below it far more often
+    than ``1 - keep_fraction`` of the time.
+
+    ``margin``: the lower of that quantile and the normal prediction bound
+    ``mean - t * sd * sqrt(1 + 1 / n)``, with ``t`` the ``keep_fraction`` quantile of Student's t
+    with ``n - 1`` degrees of freedom (:func:`student_t_quantile`): where a new scene's score
+    would fall, given ``n`` scores, if scores were normal. The margin grows as ``n`` shrinks (with
+    2 scenes, ``t = 31.8`` at 99 %), so a small calibration set lowers the threshold instead of
+    fitting it to the few scores seen. With one scene, or ``keep_fraction = 1``, it is the quantile.
 
     Args:
         known_scores: (n,) scores of validation scenes of known categories, n >= 1.
         keep_fraction: in (0, 1].
+        rule: ``quantile`` or ``margin``.
     """
     if known_scores.numel() < 1:
         raise ValueError("calibration needs at least one known scene")
     if not 0.0 < keep_fraction <= 1.0:
         raise ValueError(f"keep_fraction must be in (0, 1], got {keep_fraction}")
-    return float(torch.quantile(known_scores.double().flatten(), 1.0 - keep_fraction))
+    if rule not in ("quantile", "margin"):
+        raise ValueError(f"unknown threshold rule {rule!r}")
+    scores = known_scores.double().flatten()
+    quantile = float(torch.quantile(scores, 1.0 - keep_fraction))
+    n = scores.numel()
+    if rule == "quantile" or n < 2 or keep_fraction >= 1.0:
+        return quantile
+    bound = float(scores.mean()) - student_t_quantile(keep_fraction, n - 1) * float(scores.std()) * math.sqrt(1.0 + 1.0 / n)
+    return min(quantile, bound)
+
+
+def student_t_cdf(t: float, dof: int) -> float:
+    """P(T <= t) for Student's t with an integer number of degrees of freedom (closed form, A&S 26.7.3-4)."""
+    if dof < 1:
+        raise ValueError(f"degrees of freedom must be >= 1, got {dof}")
+    theta = math.atan(abs(t) / math.sqrt(dof))
+    c2, sin = math.cos(theta) ** 2, math.sin(theta)
+    if dof % 2:  # odd: (2/pi) (theta + sin (cos + 2/3 cos^3 + ...)), (dof - 1) / 2 terms
+        term, total = math.cos(theta), 0.0
+        for k in range(1, (dof - 1) // 2 + 1):
+            total += term
+            term *= c2 * (2 * k) / (2 * k + 1)
+        both = 2.0 / math.pi * (theta + sin * total)
+    else:  # even: sin (1 + 1/2 cos^2 + 3/8 cos^4 + ...), dof / 2 terms
+        term, total = 1.0, 0.0
+        for k in range(1, dof // 2 + 1):
+            total += term
+            term *= c2 * (2 * k - 1) / (2 * k)
+        both = sin * total
+    return 0.5 + math.copysign(0.5 * both, t)
+
+
+def student_t_quantile(q: float, dof: int) -> float:
+    """The ``q`` quantile of Student's t with ``dof`` degrees of freedom, by bisection of :func:`student_t_cdf`."""
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"quantile level must be in (0, 1), got {q}")
+    if q < 0.5:
+        return -student_t_quantile(1.0 - q, dof)
+    lo, hi = 0.0, 1.0
+    while student_t_cdf(hi, dof) < q:
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if student_t_cdf(mid, dof) < q else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def auroc(known_scores: torch.Tensor, unknown_scores: torch.Tensor) -> float:

@@ -5,8 +5,10 @@ Data use (nothing else is read):
 - **training**: every view of the collection's ``train`` scenes of the known categories (all
   categories minus ``holdout_categories``), augmented (:func:`classifier.data.augment_views`);
 - **calibration and validation metrics**: the ``val`` scenes of the known categories, all their
-  views, without augmentation. The unknown threshold of each score is the quantile that keeps
-  ``keep_fraction`` of these scenes;
+  views, without augmentation. The unknown threshold of each score keeps ``keep_fraction`` of
+  these scenes, lowered by a margin that grows as they get fewer (``threshold_rule``); a
+  collection with fewer scenes or views than :data:`~classifier.config.CALIBRATION_NEEDS` is
+  warned about (log, ``classifier.json["calibration"]["warnings"]``, the CLI's output);
 - **held-out report**: the ``val`` scenes of the held-out categories, scored to report how well
   each score flags them and, with ``score="auto"``, to pick the score with the best AUROC (never
   used for a threshold);
@@ -35,12 +37,10 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
 from nerfmeta.runfolder import check_target, run_folder
 
-from classifier.config import DEFAULT_SCORE, SCORES, TrainConfig
+from classifier.config import CALIBRATION_NEEDS, DEFAULT_SCORE, SCALE_PRIOR_GRID, SCORES, CalibrationNeeds, TrainConfig
 from classifier.data import ViewSet, augment_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
-import dataclasses
-
 from classifier.predict import (
     FeatureStats,
     auroc,
@@ -49,6 +49,7 @@ from classifier.predict import (
     fit_feature_stats,
     leave_one_out_class_scores,
     scene_distances,
+    select_scale_prior,
     scene_probabilities,
     scene_scores,
 )
@@ -272,13 +273,17 @@ def calibrate(
     """Feature statistics of the training scenes, a threshold per score, and validation metrics.
 
     The statistics use the first ``config.stats_views`` views of each training scene, not augmented.
-    The class scale of ``class_mahalanobis`` comes from the known validation scenes
-    (:func:`~classifier.predict.fit_class_scale`); their own ``class_mahalanobis`` scores, for its
+    The class scale of ``class_mahalanobis`` comes from the known validation scenes, shrunk towards
+    the pooled scale by ``config.scale_prior_scenes`` (or the prior of
+    :data:`~classifier.config.SCALE_PRIOR_GRID` with the best leave-one-out likelihood,
+    :func:`~classifier.predict.select_scale_prior`); their own ``class_mahalanobis`` scores, for its
     threshold and validation metrics, are leave-one-out scores
     (:func:`~classifier.predict.leave_one_out_class_scores`), so they are as unbiased as a new scene's.
 
     Returns:
-        stats, thresholds (score -> threshold keeping ``config.keep_fraction`` of ``val``), metrics.
+        stats, thresholds (score -> :func:`~classifier.predict.calibrate_threshold` of ``val`` with
+        ``config.keep_fraction`` and ``config.threshold_rule``), metrics (``metrics["calibration"]``
+        says which prior and rule were used).
     """
     meta = _meta(config, categories)
     sample = train.subset(config.stats_views)
@@ -287,15 +292,25 @@ def calibrate(
     val_out = scene_outputs(model, val, meta)
     labels = [int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))]
     distances = torch.stack([scene_distances(f, stats) for f, _ in val_out])
-    stats = dataclasses.replace(stats, class_scale=fit_class_scale(distances, torch.tensor(labels), len(categories)).float())
+    y = torch.tensor(labels)
+    prior, chosen_by = config.scale_prior_scenes, "given"
+    if prior is None:
+        prior, chosen_by = SCALE_PRIOR_GRID[0], "smallest of the grid (one validation scene: nothing to choose on)"
+        if len(labels) >= 2:
+            prior = select_scale_prior(distances, y, len(categories), SCALE_PRIOR_GRID)
+            chosen_by = "leave-one-out likelihood of the validation distances"
+    stats = replace(stats, class_scale=fit_class_scale(distances, y, len(categories), prior).float())
     known = score_table(val_out, stats)
-    known["class_mahalanobis"] = leave_one_out_class_scores(distances, torch.tensor(labels), stats.class_scale)
-    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction) for name in SCORES}
+    if len(labels) >= 2:
+        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, len(categories), prior)
+    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction, config.threshold_rule) for name in SCORES}
     correct = torch.tensor([int(scene_probabilities(z).argmax()) == y for (_, z), y in zip(val_out, labels)])
     metrics: dict[str, Any] = {
         "val_scenes": len(val.scenes),
         "val_views": len(val),
         "val_scene_accuracy": float(correct.float().mean()),
+        "calibration": {"threshold_rule": config.threshold_rule, "keep_fraction": config.keep_fraction,
+                        "scale_prior_scenes": prior, "scale_prior_chosen_by": chosen_by},
         "scores": {},
     }
     held = score_table(scene_outputs(model, holdout_val, meta), stats) if len(holdout_val.scenes) else None
@@ -314,18 +329,53 @@ def calibrate(
     return stats, thresholds, metrics
 
 
-def select_score(requested: str, metrics: dict[str, Any]) -> tuple[str, str]:
+def calibration_warnings(
+    train_scenes: dict[str, int], val_scenes: dict[str, int], val_views: int, needs: CalibrationNeeds = CALIBRATION_NEEDS
+) -> list[str]:
+    """One line per need of ``needs`` the collection falls short of (empty when it has enough).
+
+    Args:
+        train_scenes: known category -> its training scenes.
+        val_scenes: known category -> its known validation scenes (absent = 0).
+        val_views: the fewest views of any known validation scene.
+        needs: the minimums.
+    """
+    def short(counts: dict[str, int], need: int) -> str:
+        low = sorted((n, c) for c, n in counts.items() if n < need)
+        return ", ".join(f"{c} {n}" for n, c in low)
+
+    lines = []
+    val = {c: val_scenes.get(c, 0) for c in train_scenes}
+    if short(val, needs.val_scenes_per_category):
+        lines.append(
+            f"too few known validation scenes to calibrate the unknown threshold ({short(val, needs.val_scenes_per_category)}; "
+            f"need >= {needs.val_scenes_per_category} per category): fresh scenes of these categories may be flagged unknown; "
+            "generate more scenes per category or a larger --val-fraction")
+    if short(train_scenes, needs.train_scenes_per_category):
+        lines.append(
+            f"too few training scenes per category for the unknown score ({short(train_scenes, needs.train_scenes_per_category)}; "
+            f"need >= {needs.train_scenes_per_category}): generate more scenes per category")
+    if val_views < needs.views_per_scene:
+        lines.append(f"validation scenes have as few as {val_views} views (need >= {needs.views_per_scene} to calibrate): "
+                     "generate the collection with more --views")
+    return lines
+
+
+def select_score(requested: str, metrics: dict[str, Any], min_holdout_scenes: int = CALIBRATION_NEEDS.holdout_val_scenes) -> tuple[str, str]:
     """The score the decision uses, and why.
 
     ``auto`` takes the highest AUROC on the held-out categories' validation scenes (ties go to the
-    earlier of :data:`DEFAULT_SCORE`, then :data:`SCORES` order); without held-out validation
-    scenes it takes :data:`DEFAULT_SCORE`. Any other value is used as given.
+    earlier of :data:`DEFAULT_SCORE`, then :data:`SCORES` order); with fewer than
+    ``min_holdout_scenes`` of them (an AUROC on a handful of scenes picks noise) it takes
+    :data:`DEFAULT_SCORE`. Any other value is used as given.
     """
     if requested != "auto":
         return requested, "given"
     aurocs = {name: entry.get("holdout_val_auroc") for name, entry in metrics["scores"].items()}
-    if any(v is None for v in aurocs.values()):
-        return DEFAULT_SCORE, "default (no held-out validation scenes to compare the scores on)"
+    held = metrics.get("holdout_val_scenes", 0)
+    if any(v is None for v in aurocs.values()) or held < max(1, min_holdout_scenes):
+        return DEFAULT_SCORE, (f"default ({held} held-out validation scenes to compare the scores on; "
+                               f"auto compares them from {max(1, min_holdout_scenes)})")
     order = [DEFAULT_SCORE] + [s for s in SCORES if s != DEFAULT_SCORE]
     best = max(order, key=lambda s: (aurocs[s], -order.index(s)))
     return best, "best AUROC on the held-out categories' validation scenes"
@@ -380,6 +430,12 @@ def train_classifier(
     stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories)
     score, rule = select_score(config.score, metrics)
     metrics["score_selection"] = {"score": score, "rule": rule}
+    count = lambda records: {c: sum(r.category == c for r in records) for c in splits.categories}  # noqa: E731
+    warnings = calibration_warnings(count(splits.train), count(splits.val),
+                                    min(len(val.scene_views(k)) for k in range(len(val.scenes))))
+    for line in warnings:
+        log.warning("%s: %s", collection.root, line)
+    calibration = {**metrics.pop("calibration"), "needs": to_jsonable(CALIBRATION_NEEDS), "warnings": warnings}
     meta = _meta(config, splits.categories, score, thresholds)
     wall_s = time.perf_counter() - wall_start
 
@@ -402,6 +458,7 @@ def train_classifier(
             "torch_threads": torch.get_num_threads(),
         },
         "validation": metrics,
+        "calibration": calibration,
     }
     with run_folder(out, "classifier", overwrite=overwrite, aside=True) as run:  # built aside, swapped in when complete
         save_classifier(run.dir, Classifier(meta, model, stats), extra)

@@ -162,12 +162,12 @@ def test_leave_one_out_scores_leave_each_scene_out_of_its_own_class_scale():
     d = torch.tensor([[1.0, 90.0], [3.0, 80.0], [8.0, 70.0], [60.0, 5.0]], dtype=torch.float64)
     labels = torch.tensor([0, 0, 0, 1])
     scale = fit_class_scale(d, labels, 2)  # class 0: 4, class 1: 5
-    loo = leave_one_out_class_scores(d, labels, scale)
+    loo = leave_one_out_class_scores(d, labels, 2)
     # scene 2 (distance 8) against the mean of the other two (2): ratio 4, not 8 / 4 = 2
     assert float(loo[2]) == pytest.approx(-math.log(4.0))
     assert float(loo[0]) == pytest.approx(-math.log(1.0 / 5.5))
-    # a class with one scene keeps its scale; the nearest class may change (scene 3: 5 / 5 = 1 < 60 / 4)
-    assert float(loo[3]) == pytest.approx(0.0, abs=1e-12)
+    # without scene 3 its class has no scene and takes the others' mean scale, 4: nearest is 5 / 4
+    assert float(loo[3]) == pytest.approx(-math.log(5.0 / 4.0))
     # leaving a scene out makes the atypical ones (farther than their class's mean) look less typical
     full = class_mahalanobis_from_distances(d, scale)
     assert float(loo[2]) < float(full[2]) and float(loo[0]) > float(full[0])

@@ -250,3 +250,27 @@ def test_json_out_never_replaces_a_file_of_the_inputs(saved: Path, tmp_path: Pat
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "would replace a file of the input" in err[0]
     assert target.read_bytes() == before
+
+
+ZOO_CLASSIFIER = Path(__file__).resolve().parents[1] / "model_zoo" / "classifier"
+
+
+@pytest.mark.skipif(not (ZOO_CLASSIFIER / WEIGHTS_FILE).is_file(), reason="model_zoo/classifier not in this checkout")
+def test_classifier_folder_from_before_the_robust_calibration_loads_and_predicts_the_same():
+    """model_zoo/classifier was written before classifier.json had a "calibration" entry: same threshold, same score."""
+    doc = json.loads((ZOO_CLASSIFIER / META_FILE).read_text())
+    assert "calibration" not in doc
+    clf = load_classifier(ZOO_CLASSIFIER)
+    assert clf.meta.score == "class_mahalanobis" and clf.meta.threshold == doc["unknown"]["threshold"]
+    ramp = torch.linspace(0, 1, 64)
+    views = torch.zeros(3, 4, 64, 64)
+    for i in range(3):  # three views of a flat, shaded rectangle
+        views[i, 3, 16:48, 16 + 4 * i:48] = 1.0
+        views[i, 0] = views[i, 3] * ramp[None, :]
+        views[i, 1] = views[i, 3] * 0.5
+        views[i, 2] = views[i, 3] * ramp[:, None]
+    prediction = classify_views(clf, views)
+    # the values the code before the robust calibration gave (commit d49508c)
+    assert prediction.category == "mug" and prediction.unknown
+    assert prediction.score == pytest.approx(-1.0041412554162814, rel=1e-6)
+    assert prediction.confidence == pytest.approx(0.8858678340911865, rel=1e-6)

@@ -56,10 +56,10 @@ def test_lr_factor_warms_up_then_decays_to_zero():
 
 
 def test_auto_score_picks_the_best_validation_auroc_else_the_default():
-    with_holdout = {"scores": {"msp": {"holdout_val_auroc": 0.9}, "energy": {"holdout_val_auroc": 0.97},
+    with_holdout = {"holdout_val_scenes": 8, "scores": {"msp": {"holdout_val_auroc": 0.9}, "energy": {"holdout_val_auroc": 0.97},
                                "mahalanobis": {"holdout_val_auroc": 0.95}, "class_mahalanobis": {"holdout_val_auroc": 0.96}}}
     assert select_score("auto", with_holdout)[0] == "energy"
-    tie = {"scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
+    tie = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
     assert select_score("auto", tie)[0] == DEFAULT_SCORE == "class_mahalanobis"
     without = {"scores": {k: {} for k in SCORES}}
     assert select_score("auto", without) == (DEFAULT_SCORE, select_score("auto", without)[1])
@@ -100,8 +100,12 @@ def test_train_classifier_writes_a_complete_folder_and_reloads(collection: Path,
     assert doc["input"]["normalization"]["mean"] == list(config.mean) and doc["recipe"]["epochs"] == 1
     scores = doc["validation"]["scores"]
     assert "holdout_val_auroc" in scores["mahalanobis"] and doc["validation"]["holdout_val_scenes"] == 1
-    # the threshold keeps 99 % of the known val scenes: with two scenes, the lower one is interpolated just above
-    assert scores["energy"]["val_false_unknown_rate"] <= 0.5
+    # the threshold keeps 99 % of the known val scenes: with two scenes, the margin puts it below both
+    assert scores["energy"]["val_false_unknown_rate"] == 0.0
+    # one validation and one training scene per category: too few to calibrate, said in classifier.json
+    calibration = doc["calibration"]
+    assert calibration["threshold_rule"] == "margin" and calibration["scale_prior_scenes"] >= 1.0
+    assert len(calibration["warnings"]) == 3 and "chair 1, mug 1" in calibration["warnings"][0]
     clf = load_classifier(out)
     views = read_scene_views(collection / "chair" / "chair_002", size=16, background=clf.meta.background)
     assert classify_views(clf, views).views == 5
@@ -130,6 +134,7 @@ def test_cli_train_then_classify(collection: Path, tmp_path: Path, capsys: pytes
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "validation:" in printed and str(out) in printed
+    assert "warning: too few known validation scenes to calibrate the unknown threshold (chair 1, mug 1" in printed
     json_out = tmp_path / "answer.json"
     scene = collection / "mug" / "mug_000"
     assert main(["classify", str(scene), "--classifier", str(out), "--json-out", str(json_out)]) == 0

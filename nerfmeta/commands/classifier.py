@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from classifier.config import ARCHITECTURES, SCORES, STEMS, TrainConfig
+from classifier.config import ARCHITECTURES, SCORES, STEMS, THRESHOLD_RULES, TrainConfig
 from nerfmeta import config as options
 from nerfmeta.data.registry import parse_background
 from nerfmeta.errors import ConfigError
@@ -36,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="classifier folder to write (absent or empty)")
     options.add_config_options(
         p, TrainConfig, skip=("augment",), flags={"time_budget_s": "--time-budget"},
-        choices={"arch": ARCHITECTURES, "stem": STEMS, "score": ("auto", *SCORES)},
+        choices={"arch": ARCHITECTURES, "stem": STEMS, "score": ("auto", *SCORES), "threshold_rule": THRESHOLD_RULES},
         parsers={"background": parse_background},
         metavars={"input_size": "PX", "time_budget_s": "S", "holdout_categories": "A,B", "keep_fraction": "F",
                   "background": "COLOUR", "weights": "FILE", "device": "DEV"},
@@ -118,4 +118,6 @@ def run_train(args: argparse.Namespace) -> int:
     print(f"trained {t['steps']} steps ({t['epochs_done']:.2f} epochs, {t['stop_reason']}) in "
           f"{t['optimisation_time_s']:.0f} s; total {t['wall_time_s']:.0f} s")
     print(f"classifier in {args.out}/ (model.safetensors, classifier.json, history.json, training_curve.png)")
+    for line in doc["calibration"]["warnings"]:
+        print(f"warning: {line}")
     return 0
