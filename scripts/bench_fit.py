@@ -56,6 +56,8 @@ def fit_command(lego: Path, out: Path, args: argparse.Namespace, seed: int) -> l
            "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed)]
     if args.batch_rays:
         cmd += ["--batch-rays", str(args.batch_rays)]
+    if getattr(args, "iters", None):
+        cmd += ["--iters", str(args.iters)]
     for item in args.set:
         cmd += ["--set", item]
     return cmd
@@ -157,6 +159,8 @@ def main() -> int:
     parser.add_argument("--budget", type=float, default=60.0, help="time budget per run in seconds (default 60)")
     parser.add_argument("--backbone", choices=("grid", "nerf"), default="grid", help="backbone (default grid)")
     parser.add_argument("--batch-rays", type=int, default=None, metavar="N", help="rays per iteration (default: the CLI's)")
+    parser.add_argument("--iters", type=int, default=None, metavar="N",
+                        help="iteration cap (default: the CLI's, 3000); raise it so that the time budget ends the fit")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="backbone config override, passed to nerfmeta fit")
     parser.add_argument("--write", action="store_true", help="replace this backbone's results in BENCHMARKS.md")
     args = parser.parse_args()
