@@ -143,6 +143,18 @@ def test_to_float_images_mixes_layouts() -> None:
     assert to_float_images([rgb, rgb]).shape == (2, 2, 2, 3)
 
 
+def test_png_shape_is_read_without_decoding_its_pixels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Looking for EXIF must not decode a PNG (it did: every scene image was decoded twice)."""
+    from PIL import PngImagePlugin
+
+    Image.fromarray(np.zeros((12, 20, 3), np.uint8)).save(tmp_path / "a.png")
+    loads: list[int] = []
+    real = PngImagePlugin.PngImageFile.load
+    monkeypatch.setattr(PngImagePlugin.PngImageFile, "load", lambda self: loads.append(1) or real(self))
+    assert image_shape(tmp_path / "a.png") == (12, 20)
+    assert loads == []
+
+
 def test_pixel_limit_checked_before_decoding(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     iio.imwrite(tmp_path / "big.png", np.zeros((16, 16, 3), np.uint8))
     assert image_shape(tmp_path / "big.png") == (16, 16)

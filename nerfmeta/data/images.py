@@ -75,7 +75,14 @@ def _open(path: Path) -> Iterator[Image.Image]:
 
 
 def _orientation(image: Image.Image) -> int:
-    """The EXIF orientation tag (1 = as stored) of an opened image; 1 for a damaged EXIF block."""
+    """The EXIF orientation tag (1 = as stored) of an opened image; 1 for a damaged EXIF block.
+
+    A PNG's EXIF is read only from an eXIf chunk before the pixel data (where the PNG specification
+    places it, and where Pillow writes it): Pillow's ``getexif`` on a PNG without one decodes the
+    whole image to look behind the pixels, which made reading a scene decode every PNG twice.
+    """
+    if image.format == "PNG" and "exif" not in image.info:
+        return 1
     with _pillow_warnings_logged(Path(getattr(image, "filename", "") or "image")):
         try:
             value = image.getexif().get(EXIF_ORIENTATION, 1)
