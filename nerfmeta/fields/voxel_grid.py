@@ -292,7 +292,6 @@ class VoxelGrid(RadianceModel):
             raise ConfigError("grid config: num_voxels/coarse_num_voxels 0 means auto; resolve them with "
                               "VoxelGridConfig.for_scene(scene) or set them explicitly")
         self.config = config
-        device = bounds.device
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
         self.occupancy = OccupancyGrid(self.scene_bounds)
