@@ -66,6 +66,8 @@ class SceneSummary:
     """RGB the alpha channel was composited on; None for opaque images."""
     camera_distance: tuple[float, float, float]
     """Min, median and max distance from the camera centres to the centre of ``bounds``."""
+    scene_type: dict[str, str | bool]
+    """Kind of capture (object, forward, unbounded) and why (:mod:`nerfmeta.data.scene_type`)."""
     normalization: dict[str, float | list[float]]
     """What loading applied, ``{"scale", "offset"}`` with ``loaded = scale * file + offset``;
     ``near``, ``far``, ``bounds`` and ``camera_distance`` above are in the loaded frame."""
@@ -97,6 +99,7 @@ def summarize_scene(scene: Scene) -> SceneSummary:
         category=scene.category,
         background=scene.background,
         camera_distance=(float(dist.min()), float(dist.median()), float(dist.max())),
+        scene_type=scene.scene_type.as_json(),
         normalization=scene.normalization.as_json(),
     )
 
@@ -119,6 +122,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("principal point", f"cx {s.principal_point[0]:.2f}, cy {s.principal_point[1]:.2f} px{vary}"),
         ("near / far", f"{s.near:.4g} / {s.far:.4g} ({s.near_far_source})"),
         ("bounds", f"min {_vec(lo)}  max {_vec(hi)}  size {size}"),
+        ("scene type", f"{s.scene_type['kind']} ({s.scene_type['reason']})"),
         ("category", s.category or "-"),
         ("background", bg),
         ("camera distance", "to bounds centre: min {:.3f}, median {:.3f}, max {:.3f}".format(*s.camera_distance)),
@@ -186,8 +190,8 @@ def camera_figure(scene: Scene) -> Figure:
         if k == 0:
             ax.legend(loc="upper left", fontsize=8)
     fig.suptitle(
-        f"{scene.format}: {Path(scene.source).name} ({scene.n_views} views; bounds in black; "
-        "thick edge = image top)",
+        f"{scene.format}: {Path(scene.source).name}, {scene.scene_type.kind} scene ({scene.n_views} views; "
+        "bounds in black; thick edge = image top)",
         fontsize=10,
     )
     return fig

@@ -311,7 +311,8 @@ def scene_facts(config: RunConfig) -> SceneFacts:
     """The facts of ``config.scene`` as the fit loads it (downscale, background, normalisation)."""
     from nerfmeta.data import load_scene
 
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize)
+    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
+                       scene_type=config.scene_type)
     box = scene.bounds.detach().cpu().tolist()
     return SceneFacts((tuple(box[0]), tuple(box[1])), (scene.height, scene.width),
                       None if scene.background is None else tuple(float(v) for v in scene.background))

@@ -208,6 +208,18 @@ def test_llff_reads_images_n_and_scales_intrinsics(tmp_path: Path) -> None:
     assert scene.image_names[0] == "images_2/img_000.png" and scene.downscale == 2.0
 
 
+def test_llff_incomplete_images_n_falls_back_to_images(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # a partial pre-reduced folder (the shared beer capture's images_8/ holds 29 of 71) is passed over
+    _, images = write_llff(tmp_path)
+    (tmp_path / "images_2" / "img_008.png").unlink()
+    with caplog.at_level("WARNING"):
+        scene = load_scene(tmp_path, downscale=2)
+    assert scene.image_names[0] == "images/img_000.png"
+    full = torch.from_numpy(images).float() / 255
+    torch.testing.assert_close(scene.images, full.reshape(9, H // 2, 2, W // 2, 2, 3).mean(dim=(2, 4)), rtol=0, atol=1e-6)
+    assert "holds 8 images for 9 poses" in caplog.text
+
+
 def test_llff_without_images_n_area_downscales_images(tmp_path: Path) -> None:
     _, images = write_llff(tmp_path)
     scene = load_scene(tmp_path, downscale=4)

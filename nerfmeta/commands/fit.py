@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from nerfmeta import config as options
 from nerfmeta.data.registry import parse_background
+from nerfmeta.data.scene_type import SCENE_TYPES
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig, StepRecord
@@ -30,7 +31,7 @@ FREEZE_HELP = (
     "so K = 1 freezes the density grid (geometry), K = 2 also the feature grid (only the colour MLP adapts)"
 )
 
-RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "device")
+RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "scene_type", "device")
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
 """Spellings of :class:`FitConfig` fields that differ from the field name (kept from earlier releases)."""
@@ -54,7 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
     options.add_config_options(
         p, RunConfig, only=RUN_OPTIONS,
-        choices={"backbone": sorted(BACKBONES)},
+        choices={"backbone": sorted(BACKBONES), "scene_type": ("auto", *SCENE_TYPES)},
         parsers={"background": parse_background},
         metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "background": "COLOUR", "device": "DEV"},
         notes={

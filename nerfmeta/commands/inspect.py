@@ -7,6 +7,7 @@ import json
 
 from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.registry import parse_background
+from nerfmeta.data.scene_type import SCENE_TYPES
 from nerfmeta.inspect import format_summary, inspect_scene
 from nerfmeta.io import to_jsonable
 
@@ -29,12 +30,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-normalize", dest="normalize", action="store_false",
                         help="load the scene exactly as written, without moving a scene of extreme scale or far from "
                         "the origin into range (the report's normalisation line says what was applied)")
+    parser.add_argument("--scene-type", default="auto", choices=("auto", *SCENE_TYPES),
+                        help="kind of capture: auto (detected from the cameras and image borders; default), object, "
+                        "forward or unbounded")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    options = LoadOptions(downscale=args.downscale, background=parse_background(args.background), normalize=args.normalize)
+    options = LoadOptions(downscale=args.downscale, background=parse_background(args.background), normalize=args.normalize,
+                          scene_type=args.scene_type)
     summary = inspect_scene(args.scene, options, out=args.out)
     if args.json:
         print(json.dumps(to_jsonable(summary), indent=2))

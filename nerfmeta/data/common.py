@@ -30,6 +30,7 @@ from nerfmeta.data.images import (
 from nerfmeta.data.normalize import normalization_for
 from nerfmeta.data.ranges import check_depth_range, check_geometry, check_intrinsics
 from nerfmeta.data.scene import Normalization, Scene
+from nerfmeta.data.scene_type import SCENE_TYPES, detect_scene_type
 from nerfmeta.errors import ConfigError, SceneError
 
 HOLDOUT_EVERY = 8
@@ -50,6 +51,9 @@ class LoadOptions:
     normalize: bool = True
     """Bring a scene of extreme scale or far from the origin into range (a similarity transform,
     the identity for scenes already in range; rule in :mod:`nerfmeta.data.normalize`)."""
+    scene_type: str = "auto"
+    """``auto`` (detected from the cameras and image borders) or ``object``, ``forward``,
+    ``unbounded`` (rule in :mod:`nerfmeta.data.scene_type`)."""
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.downscale) or self.downscale < 1:
@@ -60,6 +64,8 @@ class LoadOptions:
         object.__setattr__(self, "background", tuple(float(v) for v in bg))
         if int(self.max_pixels) < 1:
             raise ConfigError(f"max_pixels must be >= 1, got {self.max_pixels}")
+        if self.scene_type != "auto" and self.scene_type not in SCENE_TYPES:
+            raise ConfigError(f"scene type must be auto, {', '.join(SCENE_TYPES)}; got {self.scene_type!r}")
 
 
 # --- files -------------------------------------------------------------------------------------
@@ -412,4 +418,5 @@ def build_scene(
         downscale=float(downscale),
         normalization=norm,
         near_far_source=near_far_source,
+        scene_type=detect_scene_type(poses_t, views.images, views.alphas, options.scene_type),
     )

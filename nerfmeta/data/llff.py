@@ -6,8 +6,8 @@ are reordered to the OpenGL [right, up, back] (``[c1, -c0, c2]``). ``(h, w, f)``
 full-resolution images; the intrinsics ``(f, f, w/2, h/2)`` are scaled to the size actually read.
 
 Images are the files of ``images/``, sorted by name, one per row. With an integer downscale ``N``
-and an ``images_N/`` folder, that folder is read as is (LLFF's pre-reduced images); otherwise
-``images/`` is read and area-downscaled.
+and an ``images_N/`` folder holding one image per pose, that folder is read as is (LLFF's
+pre-reduced images); otherwise ``images/`` is read and area-downscaled.
 
 ``near = 0.9 * min(near depths)`` and ``far = 1.1 * max(far depths)`` (the depths are along the
 optical axis; the margin covers the longer corner rays). Splits: every 8th view (0, 8, 16, ...)
@@ -16,6 +16,7 @@ is held out as the test split. Poses are kept in the file's world units (no re-c
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,8 @@ from nerfmeta.data.common import (
 from nerfmeta.data.images import list_images
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import SceneError
+
+log = logging.getLogger(__name__)
 
 NAME = "llff"
 EXPECTS = "poses_bounds.npy (N x 17) with images/ or images_N/"
@@ -59,12 +62,20 @@ def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
     return out
 
 
-def _image_folder(path: Path, downscale: float) -> tuple[Path, float]:
-    """The folder to read and the downscale still to apply to its images."""
+def _image_folder(path: Path, downscale: float, n_poses: int) -> tuple[Path, float]:
+    """The folder to read and the downscale still to apply to its images.
+
+    A pre-reduced ``images_N/`` is used only when it holds one image per pose; an incomplete one
+    (a partial copy) is passed over for ``images/``, downscaled on load, with a warning.
+    """
     if downscale > 1 and float(downscale).is_integer():
         reduced = path / f"images_{int(downscale)}"
-        if list_images(reduced):
+        found = list_images(reduced)
+        if len(found) == n_poses:
             return reduced, 1.0
+        if found:
+            log.warning("%s holds %d images for %d poses: reading images/ and downscaling it instead",
+                        reduced, len(found), n_poses)
     full = path / "images"
     if not list_images(full):
         others = sorted(p.name for p in path.glob("images_*") if list_images(p))
@@ -104,7 +115,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         raise SceneError(f"{file}: per-view bounds must satisfy 0 < near < far")
     near, far = near_far(0.9 * depths[:, 0].min(), 1.1 * depths[:, 1].max(), where=str(file))
 
-    folder, remaining = _image_folder(path, options.downscale)
+    folder, remaining = _image_folder(path, options.downscale, len(poses))
     image_paths = list_images(folder)
     if len(image_paths) != len(poses):
         raise SceneError(f"{file}: has {len(poses)} poses but {folder} holds {len(image_paths)} images")

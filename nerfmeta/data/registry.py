@@ -81,6 +81,7 @@ def load_scene(
     background: tuple[float, float, float] = (1.0, 1.0, 1.0),
     max_pixels: int = DEFAULT_MAX_PIXELS,
     normalize: bool = True,
+    scene_type: str = "auto",
 ) -> Scene:
     """Read a scene in any supported format.
 
@@ -91,12 +92,14 @@ def load_scene(
         max_pixels: refuse images with more pixels than this.
         normalize: move a scene of extreme scale or far from the origin into range (the identity
             for scenes already in range; see :mod:`nerfmeta.data.normalize`).
+        scene_type: ``auto`` or the kind of capture (see :mod:`nerfmeta.data.scene_type`).
 
     Raises:
         ConfigError: a bad option. SceneError: a bad or unsupported scene (one line, naming the
             file and what is wrong).
     """
-    options = LoadOptions(downscale=downscale, background=background, max_pixels=max_pixels, normalize=normalize)
+    options = LoadOptions(downscale=downscale, background=background, max_pixels=max_pixels, normalize=normalize,
+                          scene_type=scene_type)
     return load_scene_with(path, options)
 
 

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import torch
 
+from nerfmeta.data.scene_type import SceneType
+
 SPLITS = ("train", "val", "test")
 
 
@@ -92,6 +94,8 @@ class Scene:
             and bounds are already transformed); the identity unless the loader applied one.
         near_far_source: where ``near``/``far`` came from (the file, a format's default, or
             derived from the cameras), for ``inspect`` and reports.
+        scene_type: object, forward-facing or unbounded, and why
+            (:mod:`nerfmeta.data.scene_type`).
     """
 
     images: torch.Tensor
@@ -111,6 +115,7 @@ class Scene:
     downscale: float = 1.0
     normalization: Normalization = field(default_factory=Normalization)
     near_far_source: str = "from file"
+    scene_type: SceneType = field(default_factory=SceneType)
 
     @property
     def n_views(self) -> int:

@@ -74,6 +74,9 @@ class RunConfig:
     scenes already in range; see :mod:`nerfmeta.data.normalize`); the summary records what was applied."""
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Background the RGBA images are composited on (and rendered over)."""
+    scene_type: str = "auto"
+    """Kind of capture: auto (detected from the cameras and image borders), object, forward or unbounded
+    (see :mod:`nerfmeta.data.scene_type`); the summary records the kind and why."""
     device: str = "cpu"
     """Torch device."""
     init: str = "scratch"
@@ -276,7 +279,8 @@ def fit_in_folder(
     config.model_config()  # validate the overrides before any slow work
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize)
+    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
+                       scene_type=config.scene_type)
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
@@ -366,6 +370,8 @@ class FitSummary:
     """How the test views were chosen."""
     normalization: dict[str, Any]
     """What the loader applied to bring the scene into range."""
+    scene_type: dict[str, Any]
+    """Kind of capture (object, forward, unbounded), why, and whether it was detected."""
     resolution: list[int]
     """Height, width."""
     test_psnr: float | None
@@ -438,6 +444,7 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         test_views=len(scene.splits.get("test", ())),
         holdout=scene.holdout,
         normalization=scene.normalization.as_json(),
+        scene_type=scene.scene_type.as_json(),
         resolution=[scene.height, scene.width],
         test_psnr=None if final is None else round(final.psnr, 4),
         test_ssim=None if final is None or final.ssim is None else round(final.ssim, 5),
