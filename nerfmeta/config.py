@@ -24,6 +24,7 @@ import argparse
 import ast
 import dataclasses
 import difflib
+import functools
 import inspect
 import json
 import math
@@ -138,8 +139,14 @@ def field_docs(cls: type) -> dict[str, str]:
     """Attribute docstrings of a dataclass (the string literal under each field), by field name, as one line.
 
     Docstrings of base classes are included (a subclass's own win). Sphinx roles and double
-    backquotes are reduced to plain text: ``:class:`A``` -> ``A``.
+    backquotes are reduced to plain text: ``:class:`A``` -> ``A``. Read from the source once per
+    class (every command line builds its parser from them).
     """
+    return dict(_field_docs(cls))
+
+
+@functools.cache
+def _field_docs(cls: type) -> dict[str, str]:
     docs: dict[str, str] = {}
     for klass in reversed([k for k in cls.__mro__ if dataclasses.is_dataclass(k)]):
         tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
@@ -154,6 +161,11 @@ def field_docs(cls: type) -> dict[str, str]:
 
 def field_types(cls: type) -> dict[str, Any]:
     """The resolved type annotation of every field of dataclass ``cls``."""
+    return dict(_field_types(cls))
+
+
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
