@@ -68,6 +68,9 @@ MAD_LIMIT = 3.0
 FLAGGED_FIGURES = ("time_s", "peak_rss_mb")
 """Figures checked for outliers besides the objectives (the study re-measured memory by hand)."""
 POLL_S = 1.0
+PLAN_WAIT_S = 60.0
+"""How long a process that finds the study already created waits for its creator to enqueue the plan (after
+that it enqueues what is missing itself: the creator was killed)."""
 
 
 class TrialFailed(NerfmetaError):
@@ -143,6 +146,9 @@ def open_study(spec: SweepSpec, storage, *, create: bool = True):
                                         sampler=make_sampler(spec))
         except optuna.exceptions.DuplicatedStudyError:
             study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec))
+            deadline = time.monotonic() + PLAN_WAIT_S  # another process created it and may still be enqueuing
+            while study.user_attrs.get("planned") is None and time.monotonic() < deadline:
+                time.sleep(POLL_S)
     else:
         try:
             study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec))
