@@ -52,8 +52,7 @@ def image_pairs(scene: str | None, n: int = 6, size: int = 64) -> tuple[np.ndarr
 
         s = load_scene(scene, downscale=8)
         views = s.splits["test"][:n]
-        refs = np.stack([s.images[v][..., :3].numpy() if hasattr(s.images[v], "numpy") else s.images[v][..., :3]
-                         for v in views]).astype(np.float32)
+        refs = s.images[list(views)].numpy()
     else:
         base = rng.random((n, size // 8, size // 8, 3)).astype(np.float32)
         refs = np.asarray(torch.nn.functional.interpolate(torch.from_numpy(base).permute(0, 3, 1, 2), size=(size, size),

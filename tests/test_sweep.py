@@ -83,3 +83,24 @@ def test_sweep_cli_runs_resumes_and_redraws(root, tmp_path, capsys):
     other.write_text(json.dumps({"scenes": ["scene"], "search": {"batch_rays": {"values": [32]}}}))
     assert main(["sweep", str(other), "--out", str(out)]) == 2
     assert "another SPEC" in capsys.readouterr().err
+
+
+def test_a_repeat_far_from_the_others_is_flagged_and_rerun_once(root, tmp_path, monkeypatch):
+    import nerfmeta.sweep.study as study_module
+
+    spec = parse_spec({"scenes": ["scene"], "search": {"batch_rays": {"values": [64]}}, "repeats": 3}, root)
+    calls = []
+
+    def fake_repeat(spec, out, name, scene, params, seed):
+        calls.append(name)
+        time_s = {"p0-r0": 1.0, "p0-r1": 1.1, "p0-r2": 9.0, "p0-r2.rerun": 1.2}[name]
+        figures = {"test_psnr": 20.0, "time_s": time_s, "peak_rss_mb": 300.0, "wall_s": time_s + 1}
+        return study_module.RepeatResult(str(tmp_path / name), seed, figures)
+
+    monkeypatch.setattr(study_module, "run_repeat", fake_repeat)
+    result = study_module.run_trial(spec, tmp_path, "p0", {"batch_rays": 64})
+    assert calls == ["p0-r0", "p0-r1", "p0-r2", "p0-r2.rerun"]
+    assert [(f["repeat"], f["figure"], f["value"], f["rerun"]) for f in result["flags"]] == [(2, "time_s", 9.0, 1.2)]
+    assert result["figures"]["time_s"]["values"] == [1.0, 1.1, 1.2]
+    assert result["figures"]["time_s"]["mean"] == pytest.approx(1.1)
+    assert result["figures"]["test_lpips"] is None  # not reported: no figure rather than a made-up one
