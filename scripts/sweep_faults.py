@@ -3,7 +3,7 @@
 
 Makes a tiny scene and a tiny grid SPEC in a temporary folder, starts ``nerfmeta sweep`` and
 SIGKILLs its coordinator ``--kills`` times at random moments while fits run (each kill waits for the
-1st to 4th new fit, at random, to start, then a random 0-3 s more; its workers and fits die with it: they hold
+1st to 3rd new fit, at random, to start, then a random 0-3 s more; its workers and fits die with it: they hold
 PR_SET_PDEATHSIG), checks no process of the sweep outlives a kill, then runs the same
 command to the end and checks the study: each planned configuration COMPLETE exactly once, with
 exactly ``repeats`` finished fit run folders, and nothing else completed.
@@ -32,7 +32,7 @@ SPEC = {
     "scenes": ["scene"], "backbone": "grid",
     "fixed": {"iters": 300, "eval_every": 0, "checkpoint_every": 0, "coarse_iters": 10, "growth_steps": [],
               "coarse_num_voxels": 1000, "renders": 0},
-    "search": {"batch_rays": {"values": [128, 256, 512], "default": 256}, "num_voxels": {"values": [4000, 16000]}},
+    "search": {"batch_rays": {"values": [64, 128, 256, 512, 1024], "default": 256}, "num_voxels": {"values": [4000, 16000]}},
     "objectives": {"test_psnr": "max", "time_s": "min", "peak_rss_mb": "min"}, "repeats": 2,
 }
 
@@ -64,7 +64,7 @@ def main() -> int:
         started = len(list((out / "logs").glob("*.log"))) if (out / "logs").is_dir() else 0
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True)
         t0 = time.time()
-        target = started + rng.randint(1, 4)  # kill during the 1st to 4th fit this run starts
+        target = started + rng.randint(1, 3)  # kill during the 1st to 3rd fit this run starts
         while proc.poll() is None and (len(list((out / "logs").glob("*.log"))) if (out / "logs").is_dir() else 0) < target:
             time.sleep(0.1)
         time.sleep(rng.uniform(0.0, 3.0))

@@ -104,3 +104,17 @@ def test_a_repeat_far_from_the_others_is_flagged_and_rerun_once(root, tmp_path, 
     assert result["figures"]["time_s"]["values"] == [1.0, 1.1, 1.2]
     assert result["figures"]["time_s"]["mean"] == pytest.approx(1.1)
     assert result["figures"]["test_lpips"] is None  # not reported: no figure rather than a made-up one
+
+
+def test_two_workers_do_not_propose_the_same_configurations(root):
+    import optuna
+
+    from nerfmeta.sweep.study import distributions, make_sampler
+
+    spec = parse_spec({"scenes": ["scene"], "search": {"lr_decay": {"float": [0.01, 0.5], "log": True}},
+                       "sampler": "random", "n_trials": 4}, root)
+    drawn = []
+    for worker in (0, 1):
+        study = optuna.create_study(sampler=make_sampler(spec, worker), directions=spec.directions)
+        drawn.append([study.ask(distributions(spec)).params["lr_decay"] for _ in range(3)])
+    assert not set(drawn[0]) & set(drawn[1])

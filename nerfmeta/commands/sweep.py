@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     def on_trial(done) -> None:
         figures = ", ".join(f"{name} {done.figures[name]['mean']:.4g}" for name, _ in spec.objectives
                             if done.figures.get(name))
-        config = ", ".join(f"{k}={v}" for k, v in done.params.items())
+        config = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in done.params.items())
         eta = "" if done.eta_s is None else f", ETA {done.eta_s / 60:.1f} min"
         bar.write(f"trial {done.number} [{done.slot}] {config}: {figures} ({done.done}/{done.total}{eta})")
         bar.n = done.done

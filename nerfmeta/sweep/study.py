@@ -97,13 +97,16 @@ def open_storage(out: Path, url: str | None):
     return optuna.storages.RDBStorage(url)
 
 
-def make_sampler(spec: SweepSpec):
+def make_sampler(spec: SweepSpec, worker: int = 0):
+    """The SPEC's sampler for worker number ``worker``: each worker draws from its own seed (the same seed in
+    two workers would propose the same configurations)."""
     optuna = _optuna()
+    seed = spec.seed + 1_000_003 * worker
     if spec.sampler == "tpe":
-        return optuna.samplers.TPESampler(seed=spec.seed)
+        return optuna.samplers.TPESampler(seed=seed)
     if spec.sampler == "nsga2":
-        return optuna.samplers.NSGAIISampler(seed=spec.seed)
-    return optuna.samplers.RandomSampler(seed=spec.seed)  # grid: every trial is enqueued, nothing is sampled
+        return optuna.samplers.NSGAIISampler(seed=seed)
+    return optuna.samplers.RandomSampler(seed=seed)  # grid: every trial is enqueued, nothing is sampled  # grid: every trial is enqueued, nothing is sampled
 
 
 def _encode(value: Any) -> Any:
@@ -135,7 +138,7 @@ def params_of(spec: SweepSpec, trial) -> dict[str, Any]:
     return {k.name: _decode(k, trial.params[k.name]) for k in spec.knobs if k.name in trial.params}
 
 
-def open_study(spec: SweepSpec, storage, *, create: bool = True):
+def open_study(spec: SweepSpec, storage, *, create: bool = True, worker: int = 0):
     """Create the study (and enqueue its plan) or load it; creating is atomic in the storage, so of several
     workers starting together exactly one enqueues the plan."""
     optuna = _optuna()
@@ -143,15 +146,15 @@ def open_study(spec: SweepSpec, storage, *, create: bool = True):
     if create:
         try:
             study = optuna.create_study(storage=storage, study_name=name, directions=spec.directions,
-                                        sampler=make_sampler(spec))
+                                        sampler=make_sampler(spec, worker))
         except optuna.exceptions.DuplicatedStudyError:
-            study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec))
+            study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec, worker))
             deadline = time.monotonic() + PLAN_WAIT_S  # another process created it and may still be enqueuing
             while study.user_attrs.get("planned") is None and time.monotonic() < deadline:
                 time.sleep(POLL_S)
     else:
         try:
-            study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec))
+            study = optuna.load_study(study_name=name, storage=storage, sampler=make_sampler(spec, worker))
         except KeyError:
             raise ConfigError(f"no study {name} in the storage; run the sweep first") from None
     if create and study.user_attrs.get("planned") is None:
@@ -389,9 +392,9 @@ def next_trial(spec: SweepSpec, study, out: Path):
         return trial
 
 
-def work(spec: SweepSpec, out: Path, storage_url: str | None) -> int:
+def work(spec: SweepSpec, out: Path, storage_url: str | None, worker: int = 0) -> int:
     """A worker's loop: ask, run, tell, until the plan is used up; returns the trials it completed."""
-    study = open_study(spec, open_storage(out, storage_url), create=False)
+    study = open_study(spec, open_storage(out, storage_url), create=False, worker=worker)
     done = 0
     while True:
         t_ask = time.perf_counter()
@@ -449,8 +452,8 @@ def check_spec_matches(out: Path, spec: SweepSpec) -> None:
             raise ConfigError(f"{out}: holds a sweep of another SPEC ({saved}); choose another --out, or rerun that SPEC")
 
 
-def _spawn_worker(out: Path, storage: str | None) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "nerfmeta.sweep.worker", str(out)] + (["--storage", storage] if storage else [])
+def _spawn_worker(out: Path, storage: str | None, index: int) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "nerfmeta.sweep.worker", str(out), "--index", str(index)] + (["--storage", storage] if storage else [])
     return subprocess.Popen(cmd, preexec_fn=_die_with_parent)
 
 
@@ -478,7 +481,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, storage: str | None = None, w
         total = spec.planned_trials()
         seen = {t.number for t in completed(study)}
         start, done_here = time.perf_counter(), 0
-        procs = [_spawn_worker(out, storage) for _ in range(workers)] if work_left(spec, study) else []
+        procs = [_spawn_worker(out, storage, i) for i in range(workers)] if work_left(spec, study) else []
         try:
             while True:
                 running = [p for p in procs if p.poll() is None]

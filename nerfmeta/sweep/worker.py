@@ -18,13 +18,14 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="nerfmeta.sweep.worker")
     parser.add_argument("out")
     parser.add_argument("--storage", default=None)
+    parser.add_argument("--index", type=int, default=0, help="worker number (seeds its sampler)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     out = Path(args.out)
     spec = SweepSpec.from_json(json.loads((out / SPEC_FILE).read_text()))
     warm_imports()
     try:
-        work(spec, out, args.storage)
+        work(spec, out, args.storage, args.index)
     except NerfmetaError as err:
         print(f"nerfmeta sweep worker: error: {err}", file=sys.stderr)
         return 2
