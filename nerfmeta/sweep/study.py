@@ -503,6 +503,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, storage: str | None = None, w
                 if p.poll() is None:
                     p.terminate()
                     p.wait()
+        write_json(out / LOGS / f"session-{os.getpid()}-{int(time.time())}.json",
+                   {"wall_s": round(time.perf_counter() - start, 3), "workers": len(procs), "trials_completed": done_here})
         bad = [p.returncode for p in procs if p.returncode]
         if bad:
             raise NerfmetaError(f"{out}: {len(bad)} worker(s) failed (exit {bad[0]}); see {out / LOGS}; rerun to continue")
