@@ -33,7 +33,6 @@ import ctypes
 import fcntl
 import json
 import logging
-import math
 import os
 import signal
 import socket
@@ -525,7 +524,3 @@ def redraw_report(out: str | Path, storage: str | None = None) -> Path:
         study = open_study(spec, open_storage(out, storage), create=False)
         write_report(spec, study, run.dir)
     return out
-
-
-def finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and math.isfinite(value)
