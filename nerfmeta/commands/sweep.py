@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from nerfmeta.sweep.spec import load_spec
-    from nerfmeta.sweep.study import redraw_report, run_sweep
+    from nerfmeta.sweep.run import redraw_report, run_sweep
 
     if args.report:
         out = redraw_report(args.out or args.spec, args.storage)
