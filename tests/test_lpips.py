@@ -6,7 +6,6 @@ need no set-up), and again on the real weights where scripts/install_lpips_weigh
 
 from __future__ import annotations
 
-import io
 import os
 import pickle
 
