@@ -30,6 +30,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.classifier",
     "nerfmeta.commands.classify",
     "nerfmeta.commands.report",
+    "nerfmeta.commands.sweep",
 )
 
 

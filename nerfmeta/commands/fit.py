@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     if summary["init"] != "scratch":
         frozen = ", ".join(summary["frozen_layers"]) or "none"
         print(f"started from the {summary['init']} model in {summary['init_path']} (frozen layers: {frozen})")
-    print(f"test PSNR {summary['test_psnr']} dB, SSIM {summary['test_ssim']}, {summary['iters']} iterations in "
+    print(f"test PSNR {summary['test_psnr']} dB, SSIM {summary['test_ssim']}, LPIPS {summary['test_lpips']}, {summary['iters']} iterations in "
           f"{summary['time_s']:.1f} s ({summary['stop_reason']}), {summary['samples_per_ray']} samples/ray")
     print(f"results in {args.out}/ (summary.json, metrics.jsonl, psnr_vs_iter.png, psnr_vs_time.png, renders/)")
     return 0

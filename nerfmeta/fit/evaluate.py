@@ -9,7 +9,7 @@ import torch
 from nerfmeta.data.scene import Scene
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fit.sampler import view_rays
-from nerfmeta.metrics import mse_to_psnr, ssim
+from nerfmeta.metrics import lpips, mse_to_psnr, ssim
 
 
 @dataclass(frozen=True)
@@ -47,13 +47,14 @@ and every mean over views infinite)."""
 
 @dataclass(frozen=True)
 class EvalResult:
-    """Mean PSNR/SSIM over the rendered views (PSNR of the mean MSE per view, floored at
-    :data:`MSE_FLOOR`, averaged in dB)."""
+    """Mean PSNR/SSIM/LPIPS over the rendered views (PSNR of the mean MSE per view, floored at
+    :data:`MSE_FLOOR`, averaged in dB); SSIM and LPIPS None where not computed."""
 
     psnr: float
     ssim: float | None
     samples_per_ray: float
     renders: tuple[ViewRender, ...]
+    lpips: float | None = None
 
 
 def evaluate_views(
@@ -64,8 +65,10 @@ def evaluate_views(
     *,
     with_ssim: bool = True,
     chunk: int = 16384,
+    lpips_model: torch.nn.Module | None = None,
 ) -> EvalResult:
-    """Render ``views`` and score them against the ground truth."""
+    """Render ``views`` and score them against the ground truth (LPIPS too with ``lpips_model``, see
+    :func:`nerfmeta.metrics.load_lpips`)."""
     was_training = model.training
     model.eval()
     try:
@@ -74,10 +77,12 @@ def evaluate_views(
         model.train(was_training)
     psnrs = [float(mse_to_psnr(((r.rgb - r.target) ** 2).mean().clamp(min=MSE_FLOOR))) for r in renders]
     ssims = [float(ssim(r.rgb, r.target)) for r in renders] if with_ssim else None
+    lpipses = [float(lpips(r.rgb, r.target, lpips_model)) for r in renders] if lpips_model is not None else None
     spr = sum(r.samples_per_ray for r in renders) / max(1, len(renders))
     return EvalResult(
         psnr=sum(psnrs) / len(psnrs),
         ssim=None if ssims is None else sum(ssims) / len(ssims),
         samples_per_ray=spr,
         renders=renders,
+        lpips=None if lpipses is None else sum(lpipses) / len(lpipses),
     )

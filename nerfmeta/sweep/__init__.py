@@ -1,0 +1,1 @@
+"""Hyperparameter studies: ``nerfmeta sweep`` (see :mod:`nerfmeta.sweep.study`)."""
