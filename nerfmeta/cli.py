@@ -30,6 +30,8 @@ COMMAND_MODULES = (
     "nerfmeta.commands.classifier",
     "nerfmeta.commands.classify",
     "nerfmeta.commands.report",
+    "nerfmeta.commands.mesh",
+    "nerfmeta.commands.eval_geometry",
 )
 
 
