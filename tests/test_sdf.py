@@ -63,8 +63,20 @@ def test_numerical_gradient_matches_analytic_for_a_smooth_encoding():
     model = build_model("sdf", TINY, BOX, seed=0)
     x = torch.rand(50, 3) - 0.5
     analytic = model.evaluate(x).grad
-    num = model._numerical(x, 1e-3, False).grad
-    torch.testing.assert_close(num, analytic, rtol=2e-2, atol=2e-3)
+    tetra = model._numerical(x, 1e-3, False).grad
+    central = model._numerical(x, 1e-3, True).grad
+    torch.testing.assert_close(tetra, analytic, rtol=2e-2, atol=2e-3)
+    torch.testing.assert_close(central, analytic, rtol=2e-2, atol=2e-3)
+
+
+def test_tetrahedral_gradient_is_exact_for_a_linear_function():
+    from nerfmeta.fields.sdf import TETRAHEDRON
+
+    v = torch.tensor(TETRAHEDRON, dtype=torch.float64)
+    g = torch.tensor([0.3, -1.2, 0.7], dtype=torch.float64)
+    x = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    f = (x + 0.01 * v) @ g
+    torch.testing.assert_close((v * f[:, None]).sum(0) / (4 * 0.01), g)
 
 
 def test_losses_are_named_terms_and_every_parameter_learns():

@@ -179,14 +179,11 @@ def interpolate_level(table: torch.Tensor, x: torch.Tensor, res: int) -> torch.T
     pos = ((x.clamp(-1.0, 1.0) + 1.0) * (0.5 * res))
     base = torch.floor(pos).clamp(max=res - 1)
     frac = pos - base  # (N, 3): gradient in x flows through here
-    base = base.long()
-    out = x.new_zeros(x.shape[0], table.shape[1])
-    for corner in range(8):
-        offset = torch.tensor([(corner >> a) & 1 for a in range(3)], device=x.device)
-        idx = corner_index(base + offset, res, table.shape[0])
-        w = torch.where(offset.bool(), frac, 1.0 - frac).prod(-1)  # (N,)
-        out = out + w[:, None] * table.index_select(0, idx).to(x.dtype)
-    return out
+    offsets = torch.tensor([[(corner >> a) & 1 for a in range(3)] for corner in range(8)], device=x.device)  # (8, 3)
+    idx = corner_index(base.long()[None] + offsets[:, None], res, table.shape[0])  # (8, N)
+    w = torch.where(offsets[:, None].bool(), frac[None], 1.0 - frac[None]).prod(-1)  # (8, N)
+    feats = table.index_select(0, idx.reshape(-1)).view(8, x.shape[0], -1).to(x.dtype)
+    return (w[..., None] * feats).sum(0)
 
 
 class HashGrid(nn.Module):

@@ -22,7 +22,7 @@ at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo); ``mas
 cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
 ``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
 ``curvature_weight`` (0: off). Gradients are analytic (autograd, second order for the eikonal
-term) or central differences of step ``numerical_eps`` (Neuralangelo's choice for hash grids,
+term) or finite differences of step ``numerical_eps`` (Neuralangelo's choice for hash grids,
 whose trilinear gradient jumps at cell faces): ``gradient=auto`` picks numerical for grid encodings.
 """
 
@@ -45,6 +45,8 @@ from nerfmeta.render.estimators import OccupancyGrid
 from nerfmeta.render.volume import render_packed
 
 GRADIENTS = ("auto", "analytic", "numerical")
+TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
+"""Directions of the 4-point numerical gradient (NeuS2's tetrahedron)."""
 
 
 def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
@@ -107,9 +109,9 @@ class SdfConfig(EncodingChoice):
     """Skip empty space with the shared occupancy grid, refreshed from |sdf| after the warm-up."""
     occupancy_resolution: int = 64
     """Occupancy grid corners per axis."""
-    occupancy_warmup: int = 100
+    occupancy_warmup: int = 50
     """Steps before the first occupancy refresh."""
-    occupancy_every: int = 50
+    occupancy_every: int = 25
     """Steps between occupancy refreshes."""
     lr: float = 1e-3
     """Adam learning rate of the networks and of the variance."""
@@ -255,8 +257,16 @@ class SdfField(RadianceModel):
         return SdfSamples(sdf, grad, feature, x)
 
     def _numerical(self, x: torch.Tensor, eps: float, laplacian: bool) -> SdfSamples:
-        """Central-difference gradient (and Laplacian) from the SDF at ``x +- eps e_i`` (6 more evaluations)."""
+        """Finite-difference gradient: from the 4 vertices ``x + eps v_k`` of a tetrahedron (``sum v_k = 0``,
+        ``sum v_k v_k^T = 4 I``, so ``grad = sum_k v_k f(x + eps v_k) / (4 eps)``, exact for linear ``f``), or, with
+        the Laplacian, central differences at ``x +- eps e_i`` (6 more evaluations)."""
         n = x.shape[0]
+        if not laplacian:
+            v = torch.tensor(TETRAHEDRON, dtype=x.dtype, device=x.device)
+            sdf_all, feature_all = self.sdf_and_feature(torch.cat([x, (x[None] + eps * v[:, None]).reshape(-1, 3)]))
+            around = sdf_all[n:].reshape(4, n)
+            grad = (v[:, None, :] * around[..., None]).sum(0) / (4.0 * eps)
+            return SdfSamples(sdf_all[:n], grad, feature_all[:n], x)
         offsets = torch.cat([torch.eye(3, dtype=x.dtype, device=x.device), -torch.eye(3, dtype=x.dtype, device=x.device)]) * eps
         around = (x[None] + offsets[:, None]).reshape(-1, 3)
         sdf_all, feature_all = self.sdf_and_feature(torch.cat([x, around]))
@@ -341,11 +351,11 @@ class SdfField(RadianceModel):
 
     def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
         """Refresh the occupancy grid every ``occupancy_every`` steps after the warm-up: a corner is
-        occupied when the surface may be within two cells (``|f| < 2 cells + a marching step``)."""
+        occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
         cfg = self.config
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
-        margin = 2.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
+        margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
         size = (cfg.occupancy_resolution,) * 3
 
         def near_surface(points: torch.Tensor) -> torch.Tensor:
