@@ -149,3 +149,20 @@ def test_fit_cli_on_the_tiny_scene(tiny_scene, tmp_path):
                  "--set", "depth=2", "--set", "width=16", "--set", "n_samples=16", "--set", "encoding=hash",
                  "--set", "hash_levels=2", "--set", "hash_log2_size=8"])
     assert code == 0 and (out / "summary.json").exists()
+
+
+def test_stiff_surface_cases_stay_finite(tmp_path):
+    """The stress table's surface rows, small: a scene at 1000x scale, a 4-entry hash table, Fourier sigma 1e3."""
+    import dataclasses
+
+    from benchlib.stress import CASES, QUICK, check_results, run_case
+
+    small = dataclasses.replace(QUICK, n_train=4, fit=dataclasses.replace(QUICK.fit, iters=25))
+    names = ("sdf (reference)", "sdf, poses x 1e3", "hash table of 4 entries", "Fourier sigma 1e3")
+    cases = [c for c in CASES if c.name in names]
+    results = [run_case(c, "sdf", small, tmp_path) for c in cases]
+    check_results(results, cases)
+    for r in results:
+        assert not r.nan_seen and r.test_psnr is not None and math.isfinite(r.test_psnr), (r.case, r.outcome)
+    by_name = {r.case: r for r in results}
+    assert abs(by_name["sdf, poses x 1e3"].psnr_gap) < 0.5  # the same fit at 1000x the scale
