@@ -129,7 +129,7 @@ class SdfConfig(EncodingChoice):
         )
         for name, ok in checks:
             if not ok:
-                raise ConfigError(f"sdf config {name}={getattr(self, name)!r} is not allowed (see nerfmeta fit --help-model sdf)")
+                raise ConfigError(f"sdf config {name}={getattr(self, name)!r} is not allowed (nerfmeta fit --help lists the sdf fields and their ranges)")
         encoding_config(self, self.pos_freqs)  # an unknown encoding is refused here, not at build time
 
     @property
