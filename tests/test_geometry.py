@@ -65,7 +65,7 @@ def mug_scene(tmp_path_factory):
     from nerfmeta.cli import main
 
     out = tmp_path_factory.mktemp("coll") / "c"
-    assert main(["make-collection", str(out), "--categories", "mug", "--scenes-per-category", "1", "--views", "6",
+    assert main(["make-collection", str(out), "--categories", "mug", "--scenes-per-category", "2", "--views", "6", "--test-fraction", "0.5", "--val-fraction", "0",
                  "--test-views", "1", "--resolution", "16", "--workers", "1", "--supersample", "1"]) == 0
     return out / "mug" / "mug_000"
 
@@ -103,3 +103,17 @@ def test_gt_that_is_neither_mesh_nor_generated_scene_is_one_line_exit_2(tiny_sce
     assert main(["eval-geometry", str(run), "--gt", str(tiny_scene)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no ground-truth geometry" in err[0]
+
+
+def test_category_pretrain_and_transfer_work_on_the_sdf(mug_scene, tmp_path):
+    """The SDF is weight-space: a category model of it trains and a transfer fit starts from it, frozen layers and all."""
+    from nerfmeta.cli import main
+
+    prior = tmp_path / "prior"
+    assert main(["pretrain", "category", str(mug_scene.parents[1]), "--category", "mug", "--out", str(prior), "--backbone", "sdf",
+                 "--iters", "3", "--batch-rays", "64", "--eval-every", "0", "--set", "depth=2", "--set", "width=16"]) == 0
+    run = tmp_path / "run"
+    assert main(["fit", str(mug_scene), "--out", str(run), "--init", f"category:{prior}", "--backbone", "sdf", "--iters", "2",
+                 "--batch-rays", "64", "--renders", "0", "--freeze", "2"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["init"] == "category" and summary["frozen_layers"] == ["sdf.0", "sdf.1"]
