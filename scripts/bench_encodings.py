@@ -39,7 +39,8 @@ sys.path.insert(0, str(ROOT))
 
 from nerfmeta.collection.generate import load_collection  # noqa: E402
 from nerfmeta.geometry.metrics import GeometryConfig  # noqa: E402
-from nerfmeta.geometry.runs import evaluate_mesh, load_run_model, mesh_in_file_frame  # noqa: E402
+from nerfmeta.geometry.load import load_run_model  # noqa: E402
+from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame  # noqa: E402
 from nerfmeta.geometry.truth import sample_sdf_surface, scene_sdf_of  # noqa: E402
 
 ENCODINGS = ("pe", "fourier", "hash", "nffb", "stylemod-nffb")

@@ -30,7 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nerfmeta.geometry.runs import evaluate_mesh, load_run_model, mesh_in_file_frame
+    from nerfmeta.geometry.load import load_run_model
+    from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame
     from nerfmeta.geometry.truth import ground_truth
     from nerfmeta.paths import check_output_file, write_output_json
 

@@ -31,7 +31,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from nerfmeta.errors import ConfigError
     from nerfmeta.geometry.mesh import write_ply
-    from nerfmeta.geometry.runs import load_run_model, mesh_in_file_frame
+    from nerfmeta.geometry.load import load_run_model
+    from nerfmeta.geometry.runs import mesh_in_file_frame
     from nerfmeta.paths import check_output_file, os_errors_named
 
     out = check_output_file(args.out, option="--out", inputs=(args.run,))

@@ -1,12 +1,9 @@
-"""Geometry of fitted runs: load a run's model, mesh it in the scene file's frame, compare it with ground truth."""
+"""Geometry of fitted models: mesh them in the scene file's frame, compare them with ground truth (a fit's ``geometry``)."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,23 +20,6 @@ log = logging.getLogger(__name__)
 
 FIT_GEOMETRY = GeometryConfig(n_points=20000, resolution=64)
 """What a fit measures on a scene with known geometry (small: it runs after every such fit)."""
-
-
-def load_run_model(run: str | os.PathLike) -> tuple[RadianceModel, Any]:
-    """The model a ``nerfmeta fit`` run folder holds (its checkpoint) and its scene, loaded as the fit loaded it."""
-    from nerfmeta.data import load_scene
-    from nerfmeta.fields.registry import build_model
-    from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model
-    from nerfmeta.fit.run import RunConfig
-
-    run = Path(run)
-    if not (run / "config.json").is_file() or not (run / CHECKPOINT_NAME).is_file():
-        raise ConfigError(f"{run}: not a fit run folder (no config.json and {CHECKPOINT_NAME})")
-    config = RunConfig.from_json(json.loads((run / "config.json").read_text()))
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize)
-    model = build_model(config.backbone, config.model_config(scene), scene.bounds, seed=0)
-    restore_model(model, load_checkpoint(run / CHECKPOINT_NAME))
-    return model, scene
 
 
 def mesh_in_file_frame(model: RadianceModel, scene: Any, resolution: int, *, level: float | None = None, colors: bool = True) -> Mesh:
