@@ -50,7 +50,7 @@ LOCK = "/work/wt/bench.lock"
 def fit(scene: Path, out: Path, encoding: str, args: argparse.Namespace, extra: list[str]) -> dict:
     """One locked, time-budgeted fit; its summary plus the load average when it started."""
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch", "--backbone", "sdf",
-           "--time-budget", f"{args.budget:g}", "--iters", "1000000", "--batch-rays", str(args.batch_rays),
+           "--time-budget", f"{args.budget:g}", "--iters", str(args.iters), "--batch-rays", str(args.batch_rays),
            "--eval-every", "0", "--checkpoint-every", "0", "--eval-views", str(args.eval_views), "--renders", "1",
            "--set", f"encoding={encoding}", *extra]
     for item in args.set:
@@ -132,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-views", type=int, default=4)
     parser.add_argument("--resolution", type=int, default=128, help="marching-cubes corners per axis")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--iters", type=int, default=1000000, help="iterations per fit (the same for every encoding)")
+    parser.add_argument("--no-lock", dest="lock", action="store_false",
+                        help="do not take the bench lock: for a fixed-iteration quality study whose times are not benchmark figures")
     args = parser.parse_args(argv)
     encodings = args.encodings.split(",")
     args.out.mkdir(parents=True, exist_ok=False)
@@ -143,9 +146,10 @@ def main(argv: list[str] | None = None) -> int:
         gts[record.name] = sample_sdf_surface(sdf, box, config.n_points, resolution=160, seed=1)
         sdfs[record.name], diagonals[record.name] = sdf, float(np.linalg.norm(gts[record.name].points.max(0) - gts[record.name].points.min(0)))
     lock = open(LOCK, "a")
-    print("waiting for", LOCK, flush=True)
-    fcntl.flock(lock, fcntl.LOCK_EX)
-    print("lock taken at", time.strftime("%H:%M:%S"), flush=True)
+    if args.lock:
+        print("waiting for", LOCK, flush=True)
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        print("lock taken at", time.strftime("%H:%M:%S"), flush=True)
     for record in collection.scenes:
         scene_dir, gt = collection.scene_path(record), gts[record.name]
         meshes = []
