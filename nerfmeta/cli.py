@@ -31,6 +31,8 @@ COMMAND_MODULES = (
     "nerfmeta.commands.classify",
     "nerfmeta.commands.report",
     "nerfmeta.commands.sweep",
+    "nerfmeta.commands.mesh",
+    "nerfmeta.commands.eval_geometry",
 )
 
 

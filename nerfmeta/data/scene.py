@@ -158,6 +158,7 @@ class RayBatch:
         near: (n_rays,) distance where sampling starts.
         far: (n_rays,) distance where sampling ends (``far >= near``).
         target: (n_rays, 3) ground-truth RGB, or None when rendering novel views.
+        alpha: (n_rays,) ground-truth opacity when the scene has alphas (an SDF's mask loss), else None.
     """
 
     origins: torch.Tensor
@@ -165,6 +166,7 @@ class RayBatch:
     near: torch.Tensor
     far: torch.Tensor
     target: torch.Tensor | None = None
+    alpha: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -176,6 +178,7 @@ class RayBatch:
             self.near.to(device),
             self.far.to(device),
             None if self.target is None else self.target.to(device),
+            None if self.alpha is None else self.alpha.to(device),
         )
 
     def __getitem__(self, idx: slice | torch.Tensor) -> "RayBatch":
@@ -185,4 +188,5 @@ class RayBatch:
             self.near[idx],
             self.far[idx],
             None if self.target is None else self.target[idx],
+            None if self.alpha is None else self.alpha[idx],
         )

@@ -29,6 +29,7 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, normalize_to_box, positional_encoding
+from nerfmeta.fields.encodings import EncodingChoice, build_encoding, encoding_config
 from nerfmeta.render.estimators import OccupancyGrid
 from nerfmeta.render.sampling import importance_samples, intervals_from_points, stratified_samples
 from nerfmeta.render.volume import alpha_from_tau, render_packed, softplus_shift_for_alpha
@@ -38,8 +39,8 @@ ESTIMATORS = ("stratified", "occupancy")
 
 
 @dataclass(frozen=True)
-class NerfMLPConfig:
-    """Architecture, sampling and learning rate of :class:`NerfMLP` (saved as JSON with every run)."""
+class NerfMLPConfig(EncodingChoice):
+    """Architecture, sampling and learning rate of :class:`NerfMLP` (saved as JSON with every run); ``encoding`` picks the position encoding."""
 
     pos_freqs: int = 10
     """Octaves of the positional encoding of the (box-normalised) sample position."""
@@ -193,7 +194,8 @@ class NerfMLP(RadianceModel):
         self.config = config
         self.register_buffer("bounds", bounds.detach().clone())
         kw = {"device": bounds.device, "dtype": bounds.dtype}
-        w, pos_dim = config.width, encoding_dim(3, config.pos_freqs)
+        self.encoder = build_encoding(encoding_config(config, config.pos_freqs))  # pe: parameter-free, as before
+        w, pos_dim = config.width, self.encoder.out_dim
         self.trunk = nn.ModuleList(
             nn.Linear((pos_dim if i == 0 else w) + (pos_dim if i in config.skips else 0), w, **kw)
             for i in range(config.depth)
@@ -229,7 +231,7 @@ class NerfMLP(RadianceModel):
 
     def _raw_density(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw density (...,) and the trunk's output features (..., width) at world points (..., 3)."""
-        x = positional_encoding(normalize_to_box(points, self.bounds), self.config.pos_freqs)
+        x = self.encoder(normalize_to_box(points, self.bounds))
         k = self._frozen_prefix(x)
         with torch.no_grad():  # frozen leading layers: their outputs need no graph
             h = self._trunk(x, x, 0, k)
@@ -415,7 +417,8 @@ class NerfMLP(RadianceModel):
     # -- interface -------------------------------------------------------------------------
 
     def layers(self) -> list[Layer]:
-        names = [f"trunk.{i}" for i in range(self.config.depth)] + ["density"]
+        names = (["encoder"] if any(True for _ in self.encoder.parameters()) else [])
+        names += [f"trunk.{i}" for i in range(self.config.depth)] + ["density"]
         if self.config.view_dependent:
             names += ["feature", "view.0"]
         names.append("rgb")
@@ -425,7 +428,10 @@ class NerfMLP(RadianceModel):
         ]
 
     def param_groups(self) -> list[ParamGroup]:
-        return [ParamGroup("mlp", tuple(n for n, _ in self.named_parameters()), self.config.lr)]
+        names = tuple(n for n, _ in self.named_parameters())
+        enc = tuple(n for n in names if n.startswith("encoder."))
+        mlp = ParamGroup("mlp", tuple(n for n in names if n not in enc), self.config.lr)
+        return [mlp, ParamGroup("encoding", enc, self.config.encoding_lr)] if enc else [mlp]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
         # The occupancy grid is rebuilt by the fit (warm-up, refreshes): a state without it (a model

@@ -11,12 +11,14 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
 from nerfmeta.fields.nerf_mlp import NERF_SMALL, NerfMLP, NerfMLPConfig
+from nerfmeta.fields.sdf import SdfConfig, SdfField
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 
 BACKBONES: dict[str, tuple[type, type[RadianceModel], Any]] = {
     "grid": (VoxelGridConfig, VoxelGrid, VoxelGridConfig()),
     "nerf": (NerfMLPConfig, NerfMLP, NERF_SMALL),
     "dense": (DenseGridConfig, DenseGrid, DenseGridConfig()),  # the example of docs/new_field.md
+    "sdf": (SdfConfig, SdfField, SdfConfig()),  # NeuS-style surfaces (issue 19)
 }
 
 

@@ -43,6 +43,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
+from nerfmeta.geometry.runs import fit_geometry
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
@@ -314,7 +315,8 @@ def fit_in_folder(
     if snapshots is not None:
         snapshots.finish(model, result.state.step)
         summary = dataclasses.replace(summary, snapshots=snapshots.as_json())
-    summary = dataclasses.replace(summary, route=None if route is None else dict(route), init_load_s=None if resume else init_load_s)
+    summary = dataclasses.replace(summary, route=None if route is None else dict(route), init_load_s=None if resume else init_load_s,
+                                  geometry=fit_geometry(model, scene))
     write_outputs(folder, summary, result, renders=config.renders)
     if write_summary:
         write_run_summary(folder, summary)
@@ -407,10 +409,12 @@ class FitSummary:
     """The classifier's routing decision (``--init auto`` only)."""
     comparison: dict[str, Any] | None = None
     """The comparison with the baselines (``--compare`` only)."""
+    geometry: dict[str, Any] | None = None
+    """Chamfer, F-score and normal consistency against the exact surface (generated scenes only; nerfmeta.geometry.runs)."""
 
     def as_json(self) -> dict[str, Any]:
         out = {f.name: to_jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
-        for key in ("snapshots", "route", "comparison"):
+        for key in ("snapshots", "route", "comparison", "geometry"):
             if out[key] is None:
                 del out[key]
         return out

@@ -20,6 +20,7 @@ class RaySampler:
         if len(idx) == 0:
             raise ValueError(f"scene has no '{split}' views")
         self.images = scene.images[idx].to(device)
+        self.alphas = None if scene.alphas is None else scene.alphas[idx].to(device)
         self.poses = scene.poses[idx].to(device)
         self.intrinsics = scene.intrinsics[idx].to(device)
         self.near, self.far = float(scene.near), float(scene.far)
@@ -41,7 +42,8 @@ class RaySampler:
         target = self.images[view, row, col]
         near = torch.full((n_rays,), self.near, dtype=dtype, device=origins.device)
         far = torch.full((n_rays,), self.far, dtype=dtype, device=origins.device)
-        return RayBatch(origins, dirs, near, far, target)
+        alpha = None if self.alphas is None else self.alphas[view, row, col]
+        return RayBatch(origins, dirs, near, far, target, alpha)
 
 
 def view_rays(scene: Scene, view: int, device: torch.device | str) -> RayBatch:

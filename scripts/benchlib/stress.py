@@ -230,6 +230,8 @@ QUICK = StressSettings(
         # step and occupancy pruning all happen and the fit still learns within 60 iterations
         "grid": {"coarse_iters": 10, "coarse_lr_density": 1.0, "growth_steps": (20,), "occupancy_every": 20},
         "nerf": {"depth": 2, "width": 32, "skips": (), "n_samples": 16, "pos_freqs": 4, "lr": 0.01},
+        "sdf": {"depth": 2, "width": 32, "feature_dim": 8, "color_width": 16, "n_samples": 32, "pos_freqs": 4, "lr": 5e-3,
+                "occupancy_warmup": 20, "occupancy_every": 20, "hash_levels": 4, "hash_finest_res": 32, "nffb_width": 8},
     },
     meta={"meta_steps": 3, "meta_batch": 2, "support_rays": 64, "query_rays": 64, "inner_steps": 2, "eval_tasks": 1,
           "checkpoint_every": 0,
@@ -248,7 +250,8 @@ FULL = StressSettings(
     fit=FitConfig(iters=300, batch_rays=512, eval_every=0, checkpoint_every=0),
     # the grid as it ships (auto-sized, 100-step coarse stage, growth at 100/200/300); the MLP at
     # 4 x 64 with 24 samples and a 4x higher rate than the small preset, so a row takes ~20 s on 2 cores
-    models={"grid": {}, "nerf": {"depth": 4, "width": 64, "skips": (2,), "n_samples": 24, "lr": 2e-3}},
+    models={"grid": {}, "nerf": {"depth": 4, "width": 64, "skips": (2,), "n_samples": 24, "lr": 2e-3},
+            "sdf": {"lr": 2e-3, "occupancy_warmup": 50, "occupancy_every": 25}},
     meta={"meta_steps": 20, "meta_batch": 4, "support_rays": 256, "query_rays": 256, "inner_steps": 3, "eval_tasks": 2,
           "checkpoint_every": 0, "models": {"nerf": {}, "grid": {}}},
     collection={"categories": ("mug", "vase"), "scenes_per_category": 4, "views": 8, "test_views": 2, "resolution": 32,
@@ -367,6 +370,21 @@ def _grazing(folder: Path, s: StressSettings) -> Path:
     return write_grazing_scene(folder, n_train=s.n_train, n_test=max(s.n_test, 3), size=_odd(s.size))
 
 
+def _generated(category: str) -> SceneBuilder:
+    """One scene of a generated collection of ``category`` (its exact SDF gives the fit a Chamfer distance)."""
+
+    def build(folder: Path, s: StressSettings) -> Path:
+        from nerfmeta.collection.generate import CollectionConfig, generate_collection
+        from nerfmeta.collection.render import RenderConfig
+
+        config = CollectionConfig(categories=(category,), scenes_per_category=1, views=s.n_train, test_views=s.n_test,
+                                  resolution=s.size, val_fraction=0.0, test_fraction=0.0, render=RenderConfig(supersample=1))
+        generate_collection(config, folder)
+        return folder / category / f"{category}_000"
+
+    return build
+
+
 FAR_OFF = (1000.0, 0.0, 0.0)
 FAR_FAR_OFF = (1e6, 0.0, 0.0)
 
@@ -394,6 +412,15 @@ CASES: tuple[StressCase, ...] = (
     StressCase("poses x 1e3", _transformed(1e3, (0.0, 0.0, 0.0)), reference="original (reference)"),
     StressCase("translated +1e3 x", _transformed(1.0, FAR_OFF), reference="original (reference)"),
     StressCase("translated +1e6 x", _transformed(1.0, FAR_FAR_OFF), reference="original (reference)", quick=False),
+    # Surfaces (issue 19): the SDF backbone, encodings at their limits (full form; tests/test_sdf.py runs them small)
+    StressCase("sdf (reference)", _tiny(), backbones=("sdf",), quick=False),
+    StressCase("sdf, poses x 1e-3", _transformed(1e-3, (0.0, 0.0, 0.0)), backbones=("sdf",), reference="sdf (reference)", quick=False),
+    StressCase("sdf, poses x 1e3", _transformed(1e3, (0.0, 0.0, 0.0)), backbones=("sdf",), reference="sdf (reference)", quick=False),
+    StressCase("thin parts (a chair)", _generated("chair"), backbones=("sdf", "nerf"), min_psnr=8.0, quick=False),
+    StressCase("hash table of 4 entries", _tiny(), backbones=("sdf", "nerf"), model=set_fields(encoding="hash", hash_log2_size=2),
+               min_psnr=8.0, quick=False),
+    StressCase("Fourier sigma 1e3", _tiny(), backbones=("sdf", "nerf"), model=set_fields(encoding="fourier", fourier_sigma=1000.0),
+               min_psnr=5.0, quick=False),
     StressCase("poses x 1e-3, no normalisation", _transformed(1e-3, (0.0, 0.0, 0.0)), normalize=False, quick=False),
     StressCase("poses x 1e3, no normalisation", _transformed(1e3, (0.0, 0.0, 0.0)), normalize=False, quick=False),
     StressCase("translated +1e3 x, no normalisation", _transformed(1.0, FAR_OFF), normalize=False, quick=False),
@@ -474,6 +501,9 @@ def _fit_case(case: StressCase, backbone: str, settings: StressSettings, scene: 
     norm = summary.get("normalization")
     if norm and (norm["scale"] != 1.0 or any(norm["offset"])):
         result.note = f"normalised: scale {norm['scale']:.4g}, offset [{', '.join(f'{v:.4g}' for v in norm['offset'])}]"
+    geometry = summary.get("geometry") or {}
+    if "chamfer_pct_diagonal" in geometry:
+        result.note = (result.note + "; " if result.note else "") + f"Chamfer {geometry['chamfer_pct_diagonal']:.2f}% of the diagonal"
     return result
 
 

@@ -1,0 +1,388 @@
+"""A signed-distance field with a colour branch, volume-rendered NeuS-style through the shared renderer.
+
+The field (IDR, Yariv et al. NeurIPS 2020; NeuS, Wang et al. NeurIPS 2021): an MLP with softplus
+(beta 100) activations maps an encoded point to its signed distance and a feature vector; a colour
+MLP maps ``[x, normal, encoded view direction, feature]`` to RGB. Geometric initialisation (Atzmon
+and Lipman's SAL, as IDR) makes the network start as a sphere of radius ``init_radius``.
+
+Frame: points are mapped *isotropically* into the box's frame, ``x = (p - centre) / h`` with ``h``
+the box's largest half-side, so ``sdf`` stays a distance (world distance = ``h * sdf``) and the
+same weights mean the same shape at any scene scale.
+
+Rendering (NeuS): the shared :class:`~nerfmeta.render.estimators.OccupancyGrid` marches the box;
+each sample's SDF ``f``, its gradient and the ray direction give the section's estimated SDF at
+both ends, ``f -+ cos * delta / 2`` (``cos = min(d . n, 0)``, NeuS's annealed form at its end), and
+the discrete opacity ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with the logistic
+``Phi(f) = sigmoid(s f)`` of a learned inverse standard deviation ``s = exp(10 * variance)``
+(:func:`neus_tau` gives its optical depth exactly in log space). The compositor is
+:func:`~nerfmeta.render.volume.render_packed`, as for every backbone.
+
+Losses (named terms, :meth:`SdfField.loss_terms`): ``mse``; ``eikonal``: ``(|grad f| - 1)^2``
+at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo); ``mask``: binary
+cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
+``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
+``curvature_weight`` (0: off). Gradients are analytic (autograd, second order for the eikonal
+term) or finite differences of step ``numerical_eps`` (Neuralangelo's choice for hash grids,
+whose trilinear gradient jumps at cell faces): ``gradient=auto`` picks numerical for grid encodings.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerfmeta.data.scene import RayBatch
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent, photometric_mse
+from nerfmeta.fields.encoding import encoding_dim, positional_encoding
+from nerfmeta.fields.encodings import GRID_ENCODINGS, EncodingChoice, build_encoding, encoding_config
+from nerfmeta.render.estimators import OccupancyGrid
+from nerfmeta.render.volume import render_packed
+
+GRADIENTS = ("auto", "analytic", "numerical")
+TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
+"""Directions of the 4-point numerical gradient (NeuS2's tetrahedron)."""
+
+
+def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
+    """NeuS's discrete opacity of a section as an optical depth ``tau = -log(1 - alpha)``.
+
+    ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` clipped to [0, 1], with
+    ``Phi(f) = sigmoid(s f)``, ``f_prev/next = sdf -/+ cos * delta / 2``; so
+    ``tau = log Phi(f_prev) - log Phi(f_next) = softplus(-s f_next) - softplus(-s f_prev)``, clamped
+    at 0: finite for any finite input, where the alpha form divides by a vanishing ``Phi``.
+
+    Args:
+        sdf: (M,) signed distance at the section's middle.
+        cos: (M,) ``min(d . grad f, 0)`` (NeuS's fully annealed ``iter_cos``).
+        delta: (M,) section lengths, in the SDF's units.
+        inv_s: () inverse standard deviation ``s`` of the logistic density.
+
+    Returns:
+        (M,) non-negative optical depths.
+    """
+    half = 0.5 * cos * delta
+    prev, nxt = sdf - half, sdf + half
+    return (F.softplus(-inv_s * nxt) - F.softplus(-inv_s * prev)).clamp(min=0.0)
+
+
+@dataclass(frozen=True)
+class SdfConfig(EncodingChoice):
+    """Architecture, rendering, losses and learning rates of :class:`SdfField` (``encoding`` picks the position encoding)."""
+
+    pos_freqs: int = 6
+    """pe: octaves of the positional encoding of the position (NeuS: 6)."""
+    dir_freqs: int = 4
+    """Octaves of the positional encoding of the view direction (NeuS: 4)."""
+    depth: int = 4
+    """Hidden layers of the SDF network."""
+    width: int = 64
+    """Width of the SDF network."""
+    feature_dim: int = 32
+    """Features the SDF network hands to the colour network."""
+    color_depth: int = 2
+    """Hidden layers of the colour network."""
+    color_width: int = 64
+    """Width of the colour network."""
+    init_radius: float = 0.5
+    """Radius of the sphere the geometric initialisation starts from, in box half-sides."""
+    init_variance: float = 0.3
+    """Initial ``variance``: the inverse standard deviation starts at ``exp(10 * init_variance)`` (NeuS: 0.3)."""
+    n_samples: int = 64
+    """Marching step is ``2 / n_samples`` box half-sides."""
+    gradient: str = "auto"
+    """SDF gradients: analytic (autograd), numerical (central differences) or auto (numerical for grid encodings)."""
+    numerical_eps: float = 0.01
+    """Step of the central differences, in box half-sides."""
+    eikonal_weight: float = 0.1
+    """Weight of the eikonal term (|grad f| - 1)^2."""
+    mask_weight: float = 0.1
+    """Weight of the mask term (binary cross-entropy of opacity against the scene's alpha; used when rays carry alpha)."""
+    curvature_weight: float = 0.0
+    """Weight of the curvature term, the mean |Laplacian of f| (Neuralangelo; 0: off)."""
+    occupancy: bool = True
+    """Skip empty space with the shared occupancy grid, refreshed from |sdf| after the warm-up."""
+    occupancy_resolution: int = 64
+    """Occupancy grid corners per axis."""
+    occupancy_warmup: int = 50
+    """Steps before the first occupancy refresh."""
+    occupancy_every: int = 25
+    """Steps between occupancy refreshes."""
+    lr: float = 1e-3
+    """Adam learning rate of the networks and of the variance."""
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("depth", self.depth >= 1),
+            ("width", self.width >= 3), ("feature_dim", self.feature_dim >= 0), ("color_depth", self.color_depth >= 1),
+            ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
+            ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
+            ("numerical_eps", 0.0 < self.numerical_eps < 0.5), ("eikonal_weight", self.eikonal_weight >= 0.0),
+            ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
+            ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
+            ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
+        )
+        for name, ok in checks:
+            if not ok:
+                raise ConfigError(f"sdf config {name}={getattr(self, name)!r} is not allowed (nerfmeta fit --help lists the sdf fields and their ranges)")
+        encoding_config(self, self.pos_freqs)  # an unknown encoding is refused here, not at build time
+
+    @property
+    def numerical(self) -> bool:
+        """Whether gradients are central differences."""
+        return self.gradient == "numerical" or (self.gradient == "auto" and self.encoding in GRID_ENCODINGS)
+
+
+SDF_META_HINTS = MetaHints(
+    model_defaults={"depth": 3, "width": 32, "feature_dim": 16, "color_width": 32, "n_samples": 32},
+    fixed={"occupancy": False},
+    fixed_reason="one initialisation serves many scenes, so it keeps no per-scene occupancy grid",
+    inner_lr=1.0,
+)
+"""Meta-learning the SDF: weight-space like the NeRF MLP; no per-scene occupancy grid."""
+
+
+@dataclass
+class SdfSamples:
+    """What the SDF network says at some points (the field's *embedding*).
+
+    Attributes:
+        sdf: (N,) signed distance, box half-sides.
+        grad: (N, 3) its gradient in the box frame (unit length for a true SDF).
+        feature: (N, feature_dim) features for the colour network.
+        x: (N, 3) the points in the box frame.
+        laplacian: (N,) the Laplacian of ``sdf`` (central differences), or None.
+    """
+
+    sdf: torch.Tensor
+    grad: torch.Tensor
+    feature: torch.Tensor
+    x: torch.Tensor
+    laplacian: torch.Tensor | None = None
+
+
+class SdfField(RadianceModel):
+    """NeuS-style SDF + colour backbone (see the module docstring).
+
+    Layers, input to output: ``encoder`` (when it has parameters), ``sdf.0 .. sdf.{depth}`` (the last
+    outputs ``[sdf, feature]``), ``variance``, ``color.0 .. color.{color_depth}``.
+    """
+
+    backbone = "sdf"
+    meta_hints = SDF_META_HINTS
+
+    def __init__(self, config: SdfConfig, bounds: torch.Tensor):
+        super().__init__()
+        if tuple(bounds.shape) != (2, 3) or not bool((bounds[1] > bounds[0]).all()):
+            raise ConfigError(f"sdf bounds {bounds.tolist()} must be [min_xyz, max_xyz] with min < max on every axis")
+        self.config = config
+        self.register_buffer("bounds", bounds.detach().clone())
+        self.encoder = build_encoding(encoding_config(config, config.pos_freqs))
+        in_dim, w = self.encoder.out_dim, config.width
+        dims = [in_dim] + [w] * config.depth + [1 + config.feature_dim]
+        self.sdf = nn.ModuleList(nn.Linear(dims[i], dims[i + 1]) for i in range(len(dims) - 1))
+        self._geometric_init(in_dim)
+        self.variance = nn.Parameter(torch.tensor(float(config.init_variance)))
+        cdims = [3 + 3 + encoding_dim(3, config.dir_freqs) + config.feature_dim] + [config.color_width] * config.color_depth + [3]
+        self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
+        self.occupancy = OccupancyGrid(self._box())
+
+    def _geometric_init(self, in_dim: int) -> None:
+        """SAL/IDR's geometric initialisation: the SDF starts as a sphere of radius ``init_radius``.
+
+        Hidden layers ``N(0, 2 / out)`` with zero bias; the first layer sees only ``x`` (weights
+        on the other encoded columns zero); the last layer's SDF row ``N(sqrt(pi / in), 1e-4)``
+        with bias ``-init_radius``, so ``f(x) ~ |x| - r`` through softplus(beta=100) ~ ReLU.
+        """
+        with torch.no_grad():
+            for i, layer in enumerate(self.sdf):
+                out_dim, fan_in = layer.weight.shape
+                if i == len(self.sdf) - 1:
+                    nn.init.normal_(layer.weight, 0.0, 1e-4)
+                    layer.weight[0].normal_(math.sqrt(math.pi) / math.sqrt(fan_in), 1e-4)
+                    layer.bias.zero_()
+                    layer.bias[0] = -self.config.init_radius
+                else:
+                    nn.init.normal_(layer.weight, 0.0, math.sqrt(2.0) / math.sqrt(out_dim))
+                    layer.bias.zero_()
+                    if i == 0:
+                        layer.weight[:, 3:in_dim].zero_()
+
+    # -- frames --------------------------------------------------------------------------------
+
+    def half_side(self) -> torch.Tensor:
+        """() world length of one box half-side (the largest), the SDF's unit."""
+        return 0.5 * (self.bounds[1] - self.bounds[0]).max()
+
+    def to_box(self, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) world points -> the isotropic box frame (the box's longest axis spans [-1, 1])."""
+        return (points - 0.5 * (self.bounds[0] + self.bounds[1])) / self.half_side()
+
+    def _box(self) -> torch.Tensor:
+        """(2, 3) the cube (in world) that the box frame's [-1, 1]^3 covers: marched by the estimator."""
+        centre, h = 0.5 * (self.bounds[0] + self.bounds[1]), self.half_side()
+        return torch.stack([centre - h, centre + h])
+
+    # -- the SDF -------------------------------------------------------------------------------
+
+    def sdf_and_feature(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Signed distance (N,) and features (N, feature_dim) at box-frame points (N, 3)."""
+        h = self.encoder(x)
+        for layer in self.sdf[:-1]:
+            h = F.softplus(layer(h), beta=100.0)
+        out = self.sdf[-1](h)
+        return out[:, 0], out[:, 1:]
+
+    def inv_s(self) -> torch.Tensor:
+        """() the logistic density's inverse standard deviation ``exp(10 * variance)``, at most 1e6."""
+        return torch.exp(10.0 * self.variance).clamp(max=1e6)
+
+    def evaluate(self, x: torch.Tensor, *, laplacian: bool = False) -> SdfSamples:
+        """SDF, gradient and features at box-frame points (N, 3) (graph kept when grad mode is on)."""
+        cfg = self.config
+        if cfg.numerical or laplacian:
+            return self._numerical(x, cfg.numerical_eps, laplacian)
+        graph = torch.is_grad_enabled()
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            sdf, feature = self.sdf_and_feature(xg)
+            (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=graph)
+        if not graph:
+            sdf, feature = sdf.detach(), feature.detach()
+        return SdfSamples(sdf, grad, feature, x)
+
+    def _numerical(self, x: torch.Tensor, eps: float, laplacian: bool) -> SdfSamples:
+        """Finite-difference gradient: from the 4 vertices ``x + eps v_k`` of a tetrahedron (``sum v_k = 0``,
+        ``sum v_k v_k^T = 4 I``, so ``grad = sum_k v_k f(x + eps v_k) / (4 eps)``, exact for linear ``f``), or, with
+        the Laplacian, central differences at ``x +- eps e_i`` (6 more evaluations)."""
+        n = x.shape[0]
+        if not laplacian:
+            v = torch.tensor(TETRAHEDRON, dtype=x.dtype, device=x.device)
+            sdf_all, feature_all = self.sdf_and_feature(torch.cat([x, (x[None] + eps * v[:, None]).reshape(-1, 3)]))
+            around = sdf_all[n:].reshape(4, n)
+            grad = (v[:, None, :] * around[..., None]).sum(0) / (4.0 * eps)
+            return SdfSamples(sdf_all[:n], grad, feature_all[:n], x)
+        offsets = torch.cat([torch.eye(3, dtype=x.dtype, device=x.device), -torch.eye(3, dtype=x.dtype, device=x.device)]) * eps
+        around = (x[None] + offsets[:, None]).reshape(-1, 3)
+        sdf_all, feature_all = self.sdf_and_feature(torch.cat([x, around]))
+        sdf, feature = sdf_all[:n], feature_all[:n]
+        plus, minus = sdf_all[n:].reshape(6, n)[:3], sdf_all[n:].reshape(6, n)[3:]
+        grad = ((plus - minus) / (2.0 * eps)).t()
+        lap = ((plus + minus).sum(0) - 6.0 * sdf) / eps**2 if laplacian else None
+        return SdfSamples(sdf, grad, feature, x, lap)
+
+    def sdf_world(self, points: torch.Tensor) -> torch.Tensor:
+        """(N,) signed distance in world units at world points (N, 3)."""
+        return self.sdf_and_feature(self.to_box(points))[0] * self.half_side()
+
+    # -- the field interface -------------------------------------------------------------------
+
+    def get_density(self, points: torch.Tensor) -> tuple[torch.Tensor, SdfSamples]:
+        """NeuS's density ``s * sigmoid(-s f) * |cos| ~ s * sigmoid(-s f)`` per world unit (for estimators and meshes of density)."""
+        ev = self.evaluate(self.to_box(points))
+        s = self.inv_s()
+        return s * torch.sigmoid(-s * ev.sdf) / self.half_side(), ev
+
+    def get_outputs(self, embedding: SdfSamples, sel: torch.Tensor | None, directions: torch.Tensor,
+                    ray_idx: torch.Tensor) -> torch.Tensor:
+        """Colour (K, 3) from ``[x, normal, encoded view direction, feature]`` of the points ``sel``."""
+        ev = embedding
+        x, grad, feature = (ev.x, ev.grad, ev.feature) if sel is None else (ev.x[sel], ev.grad[sel], ev.feature[sel])
+        d = positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs)
+        h = torch.cat([x, F.normalize(grad, dim=-1), d, feature], dim=-1)
+        for layer in self.color[:-1]:
+            h = F.relu(layer(h))
+        return torch.sigmoid(self.color[-1](h))
+
+    def sample(self, rays: RayBatch, *, train: bool, generator: torch.Generator | None) -> SamplingPlan:
+        """March the box every ``2 / n_samples`` half-sides, skipping cells the occupancy grid marks empty."""
+        n, dtype, device = len(rays), rays.origins.dtype, rays.origins.device
+        if train:
+            jitter = torch.rand(n, generator=generator, dtype=dtype, device="cpu").to(device)
+        else:
+            jitter = torch.full((n,), 0.5, dtype=dtype, device=device)
+        step = float(2.0 / self.config.n_samples * self.half_side())
+        return SamplingPlan(self.occupancy.sampling(rays.origins, rays.directions, rays.near, rays.far, step=step, jitter=jitter))
+
+    def render(self, rays: RayBatch, *, background: torch.Tensor, train: bool = False,
+               generator: torch.Generator | None = None, view_dirs: torch.Tensor | None = None) -> RenderOutput:
+        """Estimator, SDF to optical depth (:func:`neus_tau`), shared compositor; extras ``grad``, ``laplacian``."""
+        samples = self.sample(rays, train=train, generator=generator).samples
+        ev = self.evaluate(self.to_box(samples.points(rays.origins, rays.directions)),
+                           laplacian=train and self.config.curvature_weight > 0.0)
+        d = rays.directions.index_select(0, samples.ray_idx).to(ev.grad.dtype)
+        cos = torch.clamp((d * ev.grad).sum(-1), max=0.0)
+        tau = neus_tau(ev.sdf, cos, samples.delta / self.half_side(), self.inv_s())
+        directions = rays.directions if view_dirs is None else view_dirs
+        comp = render_packed(tau, samples.t, samples.ray_idx, samples.far, background,
+                             lambda sel, ray_idx: self.get_outputs(ev, sel, directions, ray_idx))
+        extras = {"grad": ev.grad}
+        if ev.laplacian is not None:
+            extras["laplacian"] = ev.laplacian
+        return RenderOutput(rgb=comp.rgb, acc=comp.acc, depth=comp.depth, samples_evaluated=len(samples), extras=extras)
+
+    def forward(self, rays: RayBatch, *, background: torch.Tensor, train: bool = False,
+                generator: torch.Generator | None = None, target: torch.Tensor | None = None) -> RenderOutput:
+        """:meth:`RadianceModel.forward` plus the ``mask`` term when the rays carry the scene's alpha."""
+        out = super().forward(rays, background=background, train=train, generator=generator, target=target)
+        alpha = getattr(rays, "alpha", None)
+        if target is not None and alpha is not None and self.config.mask_weight > 0.0:
+            acc = out.acc.clamp(1e-3, 1.0 - 1e-3)
+            out.losses["mask"] = self.config.mask_weight * F.binary_cross_entropy(acc, alpha.to(acc.dtype))
+        return out
+
+    def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``mse``, ``eikonal`` and, when on, ``curvature`` (see the module docstring)."""
+        cfg = self.config
+        terms = {"mse": photometric_mse(out.rgb, target)}
+        grad = out.extras["grad"]
+        if grad.shape[0] and cfg.eikonal_weight > 0.0:
+            terms["eikonal"] = cfg.eikonal_weight * ((grad.norm(dim=-1) - 1.0) ** 2).mean()
+        if "laplacian" in out.extras and out.extras["laplacian"].shape[0]:
+            terms["curvature"] = cfg.curvature_weight * out.extras["laplacian"].abs().mean()
+        return terms
+
+    # -- structure -----------------------------------------------------------------------------
+
+    def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
+        """Refresh the occupancy grid every ``occupancy_every`` steps after the warm-up: a corner is
+        occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
+        cfg = self.config
+        if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
+            return StepEvent()
+        margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
+        size = (cfg.occupancy_resolution,) * 3
+
+        def near_surface(points: torch.Tensor) -> torch.Tensor:
+            return (self.sdf_and_feature(self.to_box(points))[0].abs() < margin).to(points.dtype)
+
+        self.occupancy.refresh(near_surface, size, 0.5)
+        message = f"occupancy grid refreshed: {100 * self.occupancy.occupied_fraction():.1f}% near the surface" \
+            if step == cfg.occupancy_warmup else ""
+        return StepEvent(False, message)
+
+    def structure(self) -> dict[str, Any]:
+        return {"occupancy_shape": list(self.occupancy.size)}
+
+    def load_structure(self, structure: dict[str, Any]) -> None:
+        if "occupancy_shape" in structure:
+            self.occupancy.binaries = torch.zeros(structure["occupancy_shape"], dtype=torch.bool, device=self.bounds.device)
+
+    def layers(self) -> list[Layer]:
+        def of(name: str) -> Layer:
+            return Layer(name, tuple(f"{name}.{p}" for p, _ in self.get_submodule(name).named_parameters()))
+
+        first = [of("encoder")] if any(True for _ in self.encoder.parameters()) else []
+        return (first + [of(f"sdf.{i}") for i in range(len(self.sdf))] + [Layer("variance", ("variance",))]
+                + [of(f"color.{i}") for i in range(len(self.color))])
+
+    def param_groups(self) -> list[ParamGroup]:
+        names = tuple(n for n, _ in self.named_parameters())
+        enc = tuple(n for n in names if n.startswith("encoder."))
+        groups = [ParamGroup("sdf", tuple(n for n in names if n not in enc), self.config.lr)]
+        return groups + [ParamGroup("encoding", enc, self.config.encoding_lr)] if enc else groups

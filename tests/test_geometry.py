@@ -1,0 +1,119 @@
+"""Geometry metrics, ground truth from exact SDFs, and the eval-geometry command."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from nerfmeta.geometry.metrics import compare_surfaces
+from nerfmeta.geometry.truth import project_to_zero_set, sample_sdf_surface
+
+
+def sphere_points(n: int, r: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return r * d, d
+
+
+def test_identical_point_sets_give_zero():
+    p, n = sphere_points(2000, 1.0)
+    m = compare_surfaces(p, p, pred_normals=n, gt_normals=n)
+    assert m.accuracy == 0 and m.completeness == 0 and m.chamfer == 0
+    assert m.fscore == 1.0 and m.normal_consistency == pytest.approx(1.0)
+
+
+def test_sphere_against_a_larger_sphere_gives_the_radius_offset():
+    """Each point scaled radially: its nearest neighbour on the other sphere is its own partner, exactly delta away."""
+    p, n = sphere_points(3000, 1.0)
+    delta = 0.01
+    m = compare_surfaces(p * (1 + delta), p, pred_normals=n, gt_normals=n, threshold=0.05, tolerance=0.001)
+    assert m.accuracy == pytest.approx(delta, rel=1e-9)
+    assert m.completeness == pytest.approx(delta, rel=1e-9)
+    assert m.chamfer == pytest.approx(delta, rel=1e-9)
+    assert m.chamfer_pct_diagonal == pytest.approx(100 * delta / m.diagonal)
+    assert m.precision == 0.0 and m.fscore == 0.0  # 0.01 > tolerance 0.001 x diagonal ~2
+
+
+def test_outliers_beyond_the_threshold_are_dropped_from_accuracy_only():
+    p, _ = sphere_points(1000, 1.0)
+    pred = np.concatenate([p, [[10.0, 0.0, 0.0]]])
+    m = compare_surfaces(pred, p, threshold=0.05, tolerance=0.01)
+    assert m.accuracy == 0.0 and m.precision == pytest.approx(1000 / 1001)
+
+
+def test_exact_sdf_samples_lie_on_the_surface_with_radial_normals():
+    def sdf(x):
+        return x.norm(dim=-1) - 0.6
+
+    s = sample_sdf_surface(sdf, np.array([[-0.7] * 3, [0.7] * 3]), 3000, resolution=32)
+    r = np.linalg.norm(s.points, axis=1)
+    assert np.abs(r - 0.6).max() < 1e-9
+    assert np.allclose(s.normals, s.points / r[:, None], atol=1e-6)
+
+
+def test_projection_onto_a_box_face():
+    def sdf(x):
+        return (x.abs() - 0.5).max(dim=-1).values  # exact inside, a bound outside: still converges on faces
+
+    p, _ = project_to_zero_set(sdf, np.array([[0.0, 0.1, 0.53], [0.2, 0.45, 0.0]]), 1e-5)
+    assert np.allclose(p, [[0.0, 0.1, 0.5], [0.2, 0.5, 0.0]], atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def mug_scene(tmp_path_factory):
+    from nerfmeta.cli import main
+
+    out = tmp_path_factory.mktemp("coll") / "c"
+    assert main(["make-collection", str(out), "--categories", "mug", "--scenes-per-category", "2", "--views", "6", "--test-fraction", "0.5", "--val-fraction", "0",
+                 "--test-views", "1", "--resolution", "16", "--workers", "1", "--supersample", "1"]) == 0
+    return out / "mug" / "mug_000"
+
+
+def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mug_scene, tmp_path, capsys):
+    from nerfmeta.cli import main
+
+    run = tmp_path / "run"
+    assert main(["fit", str(mug_scene), "--out", str(run), "--backbone", "sdf", "--iters", "3", "--batch-rays", "64",
+                 "--eval-every", "3", "--renders", "0", "--set", "depth=2", "--set", "width=16", "--set", "n_samples=16"]) == 0
+    geometry = json.loads((run / "summary.json").read_text())["geometry"]
+    assert geometry["ground_truth"] == "exact SDF" and 0 < geometry["chamfer"] < 0.5 and 0 <= geometry["fscore"] <= 1
+    capsys.readouterr()
+    assert main(["eval-geometry", str(run), "--gt", str(mug_scene), "--points", "5000", "--resolution", "32",
+                 "--json-out", str(tmp_path / "g.json")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc == json.loads((tmp_path / "g.json").read_text())
+    assert doc["chamfer"] == pytest.approx(0.5 * (doc["accuracy"] + doc["completeness"]))
+    # against its own mesh, the run's surface is far closer than against the truth
+    assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
+    capsys.readouterr()
+    assert main(["eval-geometry", str(run), "--gt", str(tmp_path / "m.ply"), "--points", "5000", "--resolution", "32"]) == 0
+    own = json.loads(capsys.readouterr().out)
+    assert own["chamfer"] < 0.25 * doc["chamfer"]
+
+
+def test_gt_that_is_neither_mesh_nor_generated_scene_is_one_line_exit_2(tiny_scene, tmp_path, capsys):
+    from nerfmeta.cli import main
+
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_scene), "--out", str(run), "--backbone", "sdf", "--iters", "1", "--batch-rays", "32",
+                 "--renders", "0", "--eval-views", "1", "--set", "depth=1", "--set", "width=8", "--set", "n_samples=8"]) == 0
+    assert "geometry" not in json.loads((run / "summary.json").read_text())  # the tiny scene has no known geometry
+    capsys.readouterr()
+    assert main(["eval-geometry", str(run), "--gt", str(tiny_scene)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no ground-truth geometry" in err[0]
+
+
+def test_category_pretrain_and_transfer_work_on_the_sdf(mug_scene, tmp_path):
+    """The SDF is weight-space: a category model of it trains and a transfer fit starts from it, frozen layers and all."""
+    from nerfmeta.cli import main
+
+    prior = tmp_path / "prior"
+    assert main(["pretrain", "category", str(mug_scene.parents[1]), "--category", "mug", "--out", str(prior), "--backbone", "sdf",
+                 "--iters", "3", "--batch-rays", "64", "--eval-every", "0", "--set", "depth=2", "--set", "width=16"]) == 0
+    run = tmp_path / "run"
+    assert main(["fit", str(mug_scene), "--out", str(run), "--init", f"category:{prior}", "--backbone", "sdf", "--iters", "2",
+                 "--batch-rays", "64", "--renders", "0", "--freeze", "2"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["init"] == "category" and summary["frozen_layers"] == ["sdf.0", "sdf.1"]

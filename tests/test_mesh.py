@@ -1,0 +1,92 @@
+"""Meshes: PLY/OBJ round trips, marching cubes orientation, the scene file's frame, the mesh command."""
+
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from nerfmeta.data.scene import Normalization
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.registry import build_model
+from nerfmeta.fields.sdf import SdfConfig
+from nerfmeta.geometry.extract import marching_cubes, surface_function
+from nerfmeta.geometry.mesh import Mesh, read_mesh, write_ply
+from nerfmeta.geometry.runs import mesh_in_file_frame
+
+TETRA = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
+             np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30]], dtype=np.uint8))
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_round_trip(tmp_path, binary):
+    write_ply(tmp_path / "t.ply", TETRA, binary=binary)
+    back = read_mesh(tmp_path / "t.ply")
+    assert np.allclose(back.vertices, TETRA.vertices) and np.array_equal(back.faces, TETRA.faces)
+    assert np.array_equal(back.colors, TETRA.colors)
+    assert not list(tmp_path.glob(".*tmp"))  # atomic: no temporary file left
+
+
+def test_obj_with_quads_and_slashes(tmp_path):
+    (tmp_path / "q.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1 4//1\n")
+    mesh = read_mesh(tmp_path / "q.obj")
+    assert mesh.faces.tolist() == [[0, 1, 2], [0, 2, 3]]
+    assert mesh.face_normals_and_areas()[1].sum() == pytest.approx(1.0)
+
+
+def test_unreadable_mesh_is_a_config_error(tmp_path):
+    (tmp_path / "x.ply").write_bytes(b"not a ply")
+    with pytest.raises(ConfigError, match="x.ply"):
+        read_mesh(tmp_path / "x.ply")
+
+
+@pytest.mark.parametrize("inside_above", [False, True])
+def test_marching_cubes_sphere_faces_point_outward(inside_above):
+    n = 24
+    axis = np.linspace(-1, 1, n)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    values = (-(r - 0.6) if inside_above else r - 0.6).astype(np.float32)
+    mesh = marching_cubes(values, np.array([[-1.0] * 3, [1.0] * 3]), 0.0, inside_above)
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 0.6).max() < 2.0 / (n - 1)
+    face_n, _ = mesh.face_normals_and_areas()
+    centres = mesh.vertices[mesh.faces].mean(1)
+    assert (np.sum(face_n * centres, axis=1) > 0).all()
+    assert (np.sum(mesh.normals * mesh.vertices, axis=1) > 0).all()  # vertex normals point outward too
+
+
+def test_mesh_is_in_the_scene_files_frame_with_colours():
+    """The SDF's initial sphere (radius 0.5 half-sides) comes back through the scene's normalisation, undone."""
+    bounds = torch.tensor([[-2.0] * 3, [2.0] * 3])  # loaded frame
+    model = build_model("sdf", SdfConfig(depth=2, width=64), bounds, seed=0)
+    scene = types.SimpleNamespace(bounds=bounds, normalization=Normalization(scale=4.0, offset=(1.0, 0.0, 0.0)))
+    mesh = mesh_in_file_frame(model, scene, 32)
+    loaded = mesh.vertices * 4.0 + np.array([1.0, 0.0, 0.0])
+    sdf = model.sdf_world(torch.as_tensor(loaded, dtype=torch.float32)).detach().numpy()
+    assert np.abs(sdf).max() < 0.1  # on the field's zero set, in the loaded frame
+    assert mesh.colors.shape == (len(mesh.vertices), 3) and mesh.colors.dtype == np.uint8
+
+
+def test_density_backbones_mesh_at_a_documented_threshold():
+    from nerfmeta.fields.nerf_mlp import NerfMLPConfig
+
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    model = build_model("nerf", NerfMLPConfig(depth=1, width=8, skips=()), box, seed=0)
+    surface = surface_function(model, box)
+    assert surface.kind == "density" and surface.inside_above
+    assert surface.level == pytest.approx(np.log(2) / (0.01 * np.sqrt(12.0)))
+
+
+def test_mesh_cli_refuses_to_overwrite_and_writes_a_readable_ply(tiny_scene, tmp_path, capsys):
+    from nerfmeta.cli import main
+
+    run = tmp_path / "run"
+    assert main(["fit", str(tiny_scene), "--out", str(run), "--backbone", "sdf", "--iters", "1", "--batch-rays", "32",
+                 "--renders", "0", "--eval-views", "1", "--set", "depth=2", "--set", "width=32", "--set", "n_samples=8"]) == 0
+    out = tmp_path / "m.ply"
+    assert main(["mesh", str(run), "--out", str(out), "--resolution", "24", "--ascii"]) == 0
+    mesh = read_mesh(out)
+    assert len(mesh.faces) > 100 and mesh.colors is not None
+    capsys.readouterr()
+    assert main(["mesh", str(run), "--out", str(out), "--resolution", "24"]) == 2
+    assert "--overwrite" in capsys.readouterr().err

@@ -1,0 +1,168 @@
+"""The SDF backbone: NeuS's opacity, geometric initialisation, gradients, named losses, meta-learning."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from nerfmeta.data.scene import RayBatch
+from nerfmeta.errors import ConfigError
+from nerfmeta.fields.base import check_partition, total_loss
+from nerfmeta.fields.registry import build_model
+from nerfmeta.fields.sdf import SdfConfig, SdfField, neus_tau
+
+TINY = SdfConfig(depth=2, width=32, feature_dim=4, color_depth=1, color_width=8, n_samples=16, pos_freqs=2, dir_freqs=1,
+                 occupancy=False, hash_levels=3, hash_log2_size=8, hash_base_res=2, hash_finest_res=16, nffb_width=4,
+                 fourier_features=8)
+BOX = torch.tensor([[-1.0] * 3, [1.0] * 3])
+
+
+def rays(n: int = 16, seed: int = 0, alpha: bool = False) -> RayBatch:
+    gen = torch.Generator().manual_seed(seed)
+    origins = F.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 3.0
+    dirs = F.normalize(0.3 * torch.randn(n, 3, generator=gen) - origins, dim=-1)
+    target = torch.rand(n, 3, generator=gen)
+    mask = (torch.rand(n, generator=gen) > 0.5).float() if alpha else None
+    return RayBatch(origins, dirs, torch.full((n,), 1.0), torch.full((n,), 5.0), target, mask)
+
+
+def test_neus_tau_matches_the_alpha_form_in_float64():
+    gen = torch.Generator().manual_seed(0)
+    sdf = torch.randn(200, generator=gen, dtype=torch.float64) * 0.2
+    cos = -torch.rand(200, generator=gen, dtype=torch.float64)
+    delta = torch.rand(200, generator=gen, dtype=torch.float64) * 0.1
+    s = torch.tensor(40.0, dtype=torch.float64)
+    prev_cdf = torch.sigmoid(s * (sdf - 0.5 * cos * delta))
+    next_cdf = torch.sigmoid(s * (sdf + 0.5 * cos * delta))
+    alpha = ((prev_cdf - next_cdf) / prev_cdf).clamp(0.0, 1.0)  # NeuS's formula, without its 1e-5
+    torch.testing.assert_close(-torch.expm1(-neus_tau(sdf, cos, delta, s)), alpha, rtol=1e-10, atol=1e-12)
+
+
+def test_neus_tau_is_zero_going_out_and_finite_far_inside():
+    s = torch.tensor(1e6)
+    tau = neus_tau(torch.tensor([0.5, -50.0, 0.0]), torch.tensor([0.0, -1.0, -1.0]), torch.tensor([0.1, 0.1, 0.1]), s)
+    assert tau[0] == 0.0 and torch.isfinite(tau).all() and tau[2] > 10.0  # a crossing at this s is opaque
+
+
+@pytest.mark.parametrize("encoding", ["pe", "fourier", "hash", "nffb", "stylemod-nffb"])
+def test_geometric_init_is_a_sphere_inside_out(encoding):
+    model = build_model("sdf", SdfConfig(encoding=encoding), BOX, seed=0)
+    sdf = model.sdf_world(torch.tensor([[0.0, 0.0, 0.0], [0.95, 0.0, 0.0], [0.0, -0.95, 0.0], [0.0, 0.0, 0.95]]))
+    assert sdf[0] < -0.2 and bool((sdf[1:] > 0.1).all())
+
+
+def test_sdf_is_in_world_units_at_any_scale():
+    a = build_model("sdf", TINY, BOX, seed=1)
+    b = build_model("sdf", TINY, BOX * 1000.0, seed=1)
+    p = torch.tensor([[0.1, 0.2, -0.3]])
+    torch.testing.assert_close(b.sdf_world(p * 1000.0), a.sdf_world(p) * 1000.0, rtol=1e-4, atol=1e-4)
+
+
+def test_numerical_gradient_matches_analytic_for_a_smooth_encoding():
+    model = build_model("sdf", TINY, BOX, seed=0).double()  # float64: float32 differences are off by ~1e-3 near softplus kinks
+    x = torch.rand(50, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5
+    analytic = model.evaluate(x).grad
+    tetra = model._numerical(x, 1e-5, False).grad
+    central = model._numerical(x, 1e-5, True).grad
+    torch.testing.assert_close(tetra, analytic, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(central, analytic, rtol=1e-3, atol=1e-4)
+
+
+def test_tetrahedral_gradient_is_exact_for_a_linear_function():
+    from nerfmeta.fields.sdf import TETRAHEDRON
+
+    v = torch.tensor(TETRAHEDRON, dtype=torch.float64)
+    g = torch.tensor([0.3, -1.2, 0.7], dtype=torch.float64)
+    x = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    f = (x + 0.01 * v) @ g
+    torch.testing.assert_close((v * f[:, None]).sum(0) / (4 * 0.01), g)
+
+
+def test_losses_are_named_terms_and_every_parameter_learns():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "curvature_weight": 0.01}), BOX, seed=0)
+    check_partition(model)
+    batch = rays(alpha=True)
+    out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+    assert set(out.losses) == {"mse", "eikonal", "mask", "curvature"}
+    total_loss(out.losses).backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
+
+
+def test_no_mask_term_without_alpha_and_eikonal_weight_applies():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.0}), BOX, seed=0)
+    batch = rays()
+    out = model(batch, background=torch.ones(3), target=batch.target)
+    assert set(out.losses) == {"mse"}
+
+
+def test_eval_render_needs_no_autograd_and_keeps_no_graph():
+    model = build_model("sdf", TINY, BOX, seed=0)
+    with torch.no_grad():
+        out = model(rays(), background=torch.ones(3))
+    assert not out.rgb.requires_grad and torch.isfinite(out.rgb).all()
+    assert bool(((out.acc >= 0) & (out.acc <= 1)).all())
+
+
+def test_occupancy_refresh_keeps_the_surface():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "occupancy": True, "occupancy_warmup": 0, "occupancy_resolution": 32, "n_samples": 64}), BOX, seed=0)
+    model.begin_step(0, 10)
+    frac = model.occupancy.occupied_fraction()
+    assert 0.0 < frac < 0.8
+    with torch.no_grad():
+        out = model(rays(), background=torch.ones(3))
+    assert out.samples_evaluated > 0 and float(out.acc.max()) > 0.5
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ConfigError, match="gradient"):
+        SdfConfig(gradient="symbolic")
+    with pytest.raises(ConfigError, match="encoding"):
+        SdfConfig(encoding="wavelet")
+
+
+def test_meta_learning_works_on_the_sdf():
+    """Weight-space meta-learning needs nothing special: MAML's meta-gradient reaches every parameter."""
+    from pretrain.meta import MetaConfig, Task, maml_meta_grad, meta_wrapper
+
+    config = MetaConfig(backbone="sdf", algo="maml", model={"depth": 2, "width": 16, "feature_dim": 4, "pos_freqs": 2, "n_samples": 8})
+    config.validate()
+    model_config = config.model_config()
+    assert model_config.occupancy is False
+    model = build_model("sdf", model_config, BOX, seed=0)
+    task = Task("t", rays(8, 1), rays(8, 2), 3)
+    grads, adaptation = maml_meta_grad(meta_wrapper(model, "torchfunc", 0.5, first_order=False), list(model.parameters()),
+                                       task, 1, background=torch.ones(3))
+    assert math.isfinite(float(adaptation.query_mse.detach()))
+    for (name, _), g in zip(model.named_parameters(), grads):
+        assert torch.isfinite(g).all(), name
+    assert sum(float(g.abs().sum()) for g in grads) > 0
+
+
+def test_fit_cli_on_the_tiny_scene(tiny_scene, tmp_path):
+    from nerfmeta.cli import main
+
+    out = tmp_path / "run"
+    code = main(["fit", str(tiny_scene), "--out", str(out), "--backbone", "sdf", "--iters", "4", "--batch-rays", "64",
+                 "--eval-every", "4", "--renders", "0", "--eval-views", "1",
+                 "--set", "depth=2", "--set", "width=16", "--set", "n_samples=16", "--set", "encoding=hash",
+                 "--set", "hash_levels=2", "--set", "hash_log2_size=8"])
+    assert code == 0 and (out / "summary.json").exists()
+
+
+def test_stiff_surface_cases_stay_finite(tmp_path):
+    """The stress table's surface rows, small: a scene at 1000x scale, a 4-entry hash table, Fourier sigma 1e3."""
+    import dataclasses
+
+    from benchlib.stress import CASES, QUICK, check_results, run_case
+
+    small = dataclasses.replace(QUICK, n_train=4, fit=dataclasses.replace(QUICK.fit, iters=25))
+    names = ("sdf (reference)", "sdf, poses x 1e3", "hash table of 4 entries", "Fourier sigma 1e3")
+    cases = [c for c in CASES if c.name in names]
+    results = [run_case(c, "sdf", small, tmp_path) for c in cases]
+    check_results(results, cases)
+    for r in results:
+        assert not r.nan_seen and r.test_psnr is not None and math.isfinite(r.test_psnr), (r.case, r.outcome)
+    by_name = {r.case: r for r in results}
+    assert abs(by_name["sdf, poses x 1e3"].psnr_gap) < 0.5  # the same fit at 1000x the scale
