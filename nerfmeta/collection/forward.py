@@ -44,8 +44,8 @@ class ForwardSceneConfig:
     """Camera positions across and up the capture plane (views = product)."""
     spacing: float = 0.15
     """Distance between neighbouring camera positions (world units; the objects are 1.5-3 away)."""
-    wall_distance: float = 6.0
-    """Distance from the capture plane to the wall."""
+    wall_distance: float = 16.0
+    """Distance from the capture plane to the wall (LLFF captures span about ten times the nearest depth)."""
     jitter: float = 0.02
     """Largest random offset of each camera position along each axis, world units (LLFF captures are hand-held)."""
     seed: int = 0
@@ -71,11 +71,12 @@ class ForwardSceneConfig:
 def forward_shape(wall_distance: float) -> Shape:
     """The scene's geometry: three textured objects 1.6-3.8 units in front of the capture plane and a wall.
 
-    The wall is wide and tall enough to fill a 120-degree view from anywhere on the capture plane.
+    The wall is wide and tall enough to fill a 120-degree view from anywhere on the capture plane; its
+    texture is coarser the further it is, so it keeps about the same size in the images.
     """
     half = 2.0 * wall_distance
     wall = Part("wall", Box((half, 0.1, half)),
-                Material((0.85, 0.8, 0.7), "noise", (0.25, 0.35, 0.55), frequency=2.0, seed=7),
+                Material((0.85, 0.8, 0.7), "noise", (0.25, 0.35, 0.55), frequency=12.0 / wall_distance, seed=7),
                 position=(0.0, wall_distance + 0.1, 0.0))
     sphere = Part("sphere", Sphere(0.45), Material((0.9, 0.3, 0.2), "noise", (0.95, 0.85, 0.3), frequency=4.0, seed=3),
                   position=(-0.9, 2.6, 0.35))

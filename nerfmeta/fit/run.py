@@ -44,6 +44,7 @@ from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
+from nerfmeta.fit.sampler import fit_space
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
@@ -281,6 +282,7 @@ def fit_in_folder(
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
                        scene_type=config.scene_type)
+    scene = fit_space(scene)  # a forward-facing scene is fitted in NDC
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
@@ -444,7 +446,7 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         test_views=len(scene.splits.get("test", ())),
         holdout=scene.holdout,
         normalization=scene.normalization.as_json(),
-        scene_type=scene.scene_type.as_json(),
+        scene_type={**scene.scene_type.as_json(), **({"ndc": scene.ndc.as_json()} if scene.ndc is not None else {})},
         resolution=[scene.height, scene.width],
         test_psnr=None if final is None else round(final.psnr, 4),
         test_ssim=None if final is None or final.ssim is None else round(final.ssim, 5),

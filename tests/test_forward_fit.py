@@ -1,0 +1,71 @@
+"""Forward-facing scenes are fitted in NDC (nerfmeta.fit.sampler.fit_space); other scenes as before."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
+from nerfmeta.data import load_scene
+from nerfmeta.fit.loop import FitConfig
+from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
+from nerfmeta.fit.sampler import RaySampler, fit_space, view_rays
+from nerfmeta.render.rays import image_rays
+
+TINY = ForwardSceneConfig(width=24, height=18, grid=(3, 3), supersample=1)
+
+
+@pytest.fixture(scope="module")
+def forward_scene(tmp_path_factory):
+    return make_forward_scene(tmp_path_factory.mktemp("fwd") / "scene", TINY)
+
+
+def test_an_object_scene_is_left_as_it_was(tiny_scene):
+    scene = load_scene(tiny_scene)
+    assert scene.scene_type.kind == "object" and fit_space(scene) is scene
+    rays = view_rays(scene, 1, "cpu")
+    o, d = image_rays(scene.poses[1], scene.intrinsics[1], scene.height, scene.width)
+    assert torch.equal(rays.origins, o.reshape(-1, 3)) and torch.equal(rays.directions, d.reshape(-1, 3))
+    assert torch.all(rays.near == scene.near) and torch.all(rays.far == scene.far)
+    g = torch.Generator().manual_seed(3)
+    batch = RaySampler(scene, "train", "cpu").sample(64, g)
+    assert torch.all(batch.near == scene.near) and torch.all(batch.far == scene.far)
+    assert torch.allclose(batch.directions.norm(dim=-1), torch.ones(64))
+
+
+def test_a_forward_scene_is_fitted_in_ndc(forward_scene):
+    scene = fit_space(load_scene(forward_scene))
+    assert scene.ndc is not None and scene.near == 0.0
+    assert fit_space(scene) is scene  # once is enough
+    box = scene.bounds
+    assert box[0, 2] == -1.0 and box[1, 2] == 1.0
+    assert torch.all(box[0, :2] <= -0.9) and torch.all(box[1, :2] >= 0.9)  # the reference frustum and a margin
+    for view in range(scene.n_views):
+        rays = view_rays(scene, view, "cpu")
+        assert torch.allclose(rays.directions.norm(dim=-1), torch.ones(len(rays)))
+        assert torch.all(rays.near == 0.0)
+        for t in (rays.near, rays.far):  # every pixel ray, near plane to infinity, lies in the box
+            p = rays.origins + t[:, None] * rays.directions
+            assert torch.all(p >= box[0] - 1e-5) and torch.all(p <= box[1] + 1e-5)
+        assert torch.allclose((rays.origins + rays.far[:, None] * rays.directions)[:, 2], torch.ones(len(rays)), atol=1e-5)
+    batch = RaySampler(scene, "train", "cpu").sample(32, torch.Generator().manual_seed(0))
+    assert torch.all(batch.near == 0.0)
+    ends = batch.origins + batch.far[:, None] * batch.directions
+    assert torch.allclose(ends[:, 2], torch.ones(32), atol=1e-5) and torch.all(ends >= box[0] - 1e-5)
+
+
+@pytest.mark.parametrize("scene_type,ndc", [("auto", True), ("object", False)])
+def test_fit_records_the_space_and_learns(forward_scene, tmp_path, scene_type, ndc):
+    config = RunConfig(scene=str(forward_scene), scene_type=scene_type, renders=0,
+                       model={"coarse_iters": 10, "growth_steps": [10], "num_voxels": 24**3, "coarse_num_voxels": 12**3,
+                              "coarse_alpha_init": 1e-2},
+                       fit=FitConfig(iters=40, batch_rays=256, eval_every=0, checkpoint_every=0, final_ssim=False))
+    summary = run_fit(config, tmp_path / "run")
+    assert ("ndc" in summary["scene_type"]) is ndc
+    assert summary["scene_type"]["kind"] == ("forward" if ndc else "object")
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["scene_type"] == scene_type
+    records = read_metrics(tmp_path / "run" / "metrics.jsonl")
+    assert records[-1]["train_psnr"] > records[0]["train_psnr"] + 3.0
