@@ -11,7 +11,7 @@ from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
 from nerfmeta.data import load_scene
 from nerfmeta.fit.loop import FitConfig
 from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
-from nerfmeta.fit.sampler import RaySampler, fit_space, view_rays
+from nerfmeta.fit.sampler import NDC_DEPTH_SCALE, RaySampler, fit_space, view_rays
 from nerfmeta.render.rays import image_rays
 
 TINY = ForwardSceneConfig(width=24, height=18, grid=(3, 3), supersample=1)
@@ -40,7 +40,7 @@ def test_a_forward_scene_is_fitted_in_ndc(forward_scene):
     assert scene.ndc is not None and scene.near == 0.0
     assert fit_space(scene) is scene  # once is enough
     box = scene.bounds
-    assert box[0, 2] == -1.0 and box[1, 2] == 1.0
+    assert box[0, 2] == -NDC_DEPTH_SCALE and box[1, 2] == NDC_DEPTH_SCALE
     assert torch.all(box[0, :2] <= -0.9) and torch.all(box[1, :2] >= 0.9)  # the reference frustum and a margin
     for view in range(scene.n_views):
         rays = view_rays(scene, view, "cpu")
@@ -49,11 +49,12 @@ def test_a_forward_scene_is_fitted_in_ndc(forward_scene):
         for t in (rays.near, rays.far):  # every pixel ray, near plane to infinity, lies in the box
             p = rays.origins + t[:, None] * rays.directions
             assert torch.all(p >= box[0] - 1e-5) and torch.all(p <= box[1] + 1e-5)
-        assert torch.allclose((rays.origins + rays.far[:, None] * rays.directions)[:, 2], torch.ones(len(rays)), atol=1e-5)
+        far_end = (rays.origins + rays.far[:, None] * rays.directions)[:, 2]
+        assert torch.allclose(far_end, torch.full((len(rays),), NDC_DEPTH_SCALE), atol=1e-5)  # infinity
     batch = RaySampler(scene, "train", "cpu").sample(32, torch.Generator().manual_seed(0))
     assert torch.all(batch.near == 0.0)
     ends = batch.origins + batch.far[:, None] * batch.directions
-    assert torch.allclose(ends[:, 2], torch.ones(32), atol=1e-5) and torch.all(ends >= box[0] - 1e-5)
+    assert torch.allclose(ends[:, 2], torch.full((32,), NDC_DEPTH_SCALE), atol=1e-5) and torch.all(ends >= box[0] - 1e-5)
 
 
 @pytest.mark.parametrize("scene_type,ndc", [("auto", True), ("object", False)])
@@ -69,3 +70,11 @@ def test_fit_records_the_space_and_learns(forward_scene, tmp_path, scene_type, n
     assert saved["scene_type"] == scene_type
     records = read_metrics(tmp_path / "run" / "metrics.jsonl")
     assert records[-1]["train_psnr"] > records[0]["train_psnr"] + 3.0
+
+
+def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forward_scene, tiny_scene):
+    forward = fit_space(load_scene(forward_scene))
+    assert RunConfig(scene="x").model_config(forward).coarse_iters == 50
+    assert RunConfig(scene="x").model_config(forward).coarse_alpha_init == 1e-2
+    assert RunConfig(scene="x", model={"coarse_iters": 7}).model_config(forward).coarse_iters == 7
+    assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).coarse_iters == 100

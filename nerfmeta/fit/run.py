@@ -90,9 +90,13 @@ class RunConfig:
     """Iterations after which to render the first test views into ``snapshots/`` (0: the starting point), plus the final one; empty: none."""
 
     def model_config(self, scene=None) -> Any:
-        """The backbone config: defaults, then ``model`` overrides, then (if the config class has
-        one and a scene is given) its ``for_scene`` rule that sizes "auto" fields for the scene."""
-        base = dataclasses.asdict(default_config(self.backbone))
+        """The backbone config: defaults (those of the scene's kind where the config class names some in
+        ``scene_type_defaults``), then ``model`` overrides, then (if the config class has one and a scene is
+        given) its ``for_scene`` rule that sizes "auto" fields for the scene."""
+        default = default_config(self.backbone)
+        base = dataclasses.asdict(default)
+        if scene is not None:
+            base.update(getattr(default, "scene_type_defaults", {}).get(scene.scene_type.kind, {}))
         config = config_from_dict(self.backbone, {**base, **self.model})
         if scene is not None and hasattr(config, "for_scene"):
             config = config.for_scene(scene)
