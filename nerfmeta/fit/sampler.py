@@ -18,8 +18,8 @@ from nerfmeta.render.rays import camera_rays, image_rays
 NDC_DEPTH_SCALE = 0.5
 """Depth axis of a forward scene's NDC box, ``[-0.5, 0.5]`` (see :class:`~nerfmeta.render.ndc.NDCSpace`): a
 grid of cubic voxels then has twice as many voxels across as in depth, as DirectVoxGO's LLFF grids have
-more (362 x 362 x 128), and a ray marches half as many samples (82 instead of 118 per test ray on the
-generated forward scene at 160 x 120, with no loss in one exploratory 30 s fit each)."""
+more (362 x 362 x 128), and a ray marches fewer samples (82 instead of 118 per test ray on the generated
+forward scene at 160 x 120)."""
 
 
 def fit_space(scene: Scene) -> Scene:
