@@ -78,3 +78,29 @@ def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forwar
     assert RunConfig(scene="x").model_config(forward).coarse_alpha_init == 1e-2
     assert RunConfig(scene="x", model={"coarse_iters": 7}).model_config(forward).coarse_iters == 7
     assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).coarse_iters == 100
+
+
+def test_a_classic_llff_folder_fits_end_to_end_in_ndc(tmp_path):
+    """images/ at full size, images_4/ reduced, (h, w, f) of the full size: `fit --downscale 4` reads images_4/."""
+    from nerfmeta.cli import main
+    from nerfmeta.collection.forward import render_forward_scene, write_llff_scene
+    from nerfmeta.data.write import encode_png
+    from nerfmeta.io import write_bytes_atomic
+
+    config = ForwardSceneConfig(width=48, height=36, grid=(3, 3), supersample=1)
+    images, poses, bounds = render_forward_scene(config)
+    scene_dir = tmp_path / "fern_like"
+    write_llff_scene(scene_dir, images, poses, bounds, config.focal)
+    small = images.reshape(9, 9, 4, 12, 4, 3).mean(axis=(2, 4)).round().astype("uint8")
+    for k, image in enumerate(small):
+        write_bytes_atomic(scene_dir / "images_4" / f"view_{k:03d}.png", encode_png(image))
+    scene = load_scene(scene_dir, downscale=4)
+    assert (scene.height, scene.width) == (9, 12) and scene.scene_type.kind == "forward"
+    assert torch.allclose(scene.intrinsics[0], torch.tensor([config.focal / 4, config.focal / 4, 6.0, 4.5]))
+    out = tmp_path / "run"
+    assert main(["fit", str(scene_dir), "--out", str(out), "--downscale", "4", "--init", "scratch", "--iters", "12",
+                 "--batch-rays", "128", "--eval-every", "0", "--checkpoint-every", "0", "--set", "coarse_iters=6"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scene_type"]["kind"] == "forward" and "ndc" in summary["scene_type"]
+    assert summary["resolution"] == [9, 12] and summary["iters"] == 12 and summary["test_psnr"] is not None
+    assert json.loads((out / "config.json").read_text())["model"]["coarse_alpha_init"] == 1e-2  # the forward defaults
