@@ -104,3 +104,18 @@ def test_a_classic_llff_folder_fits_end_to_end_in_ndc(tmp_path):
     assert summary["scene_type"]["kind"] == "forward" and "ndc" in summary["scene_type"]
     assert summary["resolution"] == [9, 12] and summary["iters"] == 12 and summary["test_psnr"] is not None
     assert json.loads((out / "config.json").read_text())["model"]["coarse_alpha_init"] == 1e-2  # the forward defaults
+
+
+def test_a_forward_scene_ndc_cannot_hold_is_refused_in_one_line(forward_scene):
+    from dataclasses import replace
+
+    from nerfmeta.data.scene_type import SceneType
+    from nerfmeta.errors import ConfigError
+
+    scene = load_scene(forward_scene)
+    turned = scene.poses.clone()
+    c, s = 0.0, 1.0  # the first camera turned 90 degrees about the up axis: it looks sideways
+    turn = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    turned[0, :3, :3] = turned[0, :3, :3] @ turn
+    with pytest.raises(ConfigError, match="--scene-type object"):
+        fit_space(replace(scene, poses=turned, scene_type=SceneType("forward", "set by the user", detected=False)))

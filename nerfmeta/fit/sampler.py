@@ -12,6 +12,7 @@ from dataclasses import replace
 import torch
 
 from nerfmeta.data.scene import RayBatch, Scene
+from nerfmeta.errors import ConfigError
 from nerfmeta.render.ndc import NDCSpace, ndc_box, ndc_space, to_ndc
 from nerfmeta.render.rays import camera_rays, image_rays
 
@@ -28,7 +29,11 @@ def fit_space(scene: Scene) -> Scene:
     if scene.scene_type.kind != "forward" or scene.ndc is not None:
         return scene
     space = ndc_space(scene.poses, scene.intrinsics, scene.height, scene.width, scene.near, depth_scale=NDC_DEPTH_SCALE)
-    box = ndc_box(space, scene.poses, scene.intrinsics, scene.height, scene.width).float()
+    try:
+        box = ndc_box(space, scene.poses, scene.intrinsics, scene.height, scene.width).float()
+    except ValueError as err:
+        raise ConfigError(f"{scene.source}: fitted as forward-facing ({scene.scene_type.reason}), but {err}; "
+                          "pass --scene-type object or unbounded") from err
     return replace(scene, ndc=space, bounds=box, near=0.0, far=float(torch.linalg.vector_norm(box[1] - box[0])))
 
 

@@ -23,12 +23,15 @@ Pure functions: tensors in, tensors out; dtype and device follow the inputs.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from nerfmeta.render.rays import camera_rays
 
+MIN_FORWARD = 0.1
+"""Smallest cosine between a pixel ray and the reference camera's axis that NDC takes (84 degrees)."""
 BD_FACTOR = 0.75
 """The scene's near distance is scaled to ``1 / BD_FACTOR`` in front of the near plane (NeRF's LLFF setting)."""
 
@@ -182,9 +185,17 @@ def ndc_box(space: NDCSpace, poses: torch.Tensor, intrinsics: torch.Tensor, heig
     Each view's frustum maps to a convex set whose corners are the images of its four corner rays at
     the near plane and at infinity (a projective map keeps lines and convexity), so their extremes
     bound it (DirectVoxGO takes the box of its NDC rays' end points the same way).
+
+    Raises:
+        ValueError: a corner ray is more than ``acos(MIN_FORWARD)`` (84 degrees) off the reference axis;
+            NDC cannot hold it (it meets the near plane far outside the frustum, or never).
     """
     corners = torch.tensor([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]], dtype=torch.float64)
     o, d = camera_rays(poses.double()[:, None], intrinsics.double()[:, None], corners.expand(len(poses), 4, 2))
+    forward = float(-(d.reshape(-1, 3) @ space.reference[:3, 2]).max())  # least cosine to the viewing axis
+    if forward < MIN_FORWARD:
+        raise ValueError(f"an image corner looks {math.degrees(math.acos(max(-1.0, min(1.0, forward)))):.0f} deg away "
+                         "from the average camera's axis: NDC needs every ray to go forward")
     o_ndc, u, length = to_ndc(space, o.reshape(-1, 3), d.reshape(-1, 3))
     ends = torch.cat([o_ndc, o_ndc + u * length[:, None]])
     lo, hi = ends.amin(0), ends.amax(0)
