@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from nerfmeta.data.scene_type import SceneType
+from nerfmeta.render.ndc import NDCSpace
 
 SPLITS = ("train", "val", "test")
 
@@ -96,6 +97,9 @@ class Scene:
             derived from the cameras), for ``inspect`` and reports.
         scene_type: object, forward-facing or unbounded, and why
             (:mod:`nerfmeta.data.scene_type`).
+        ndc: set when the scene is fitted in normalised device coordinates (a forward-facing scene
+            after :func:`nerfmeta.fit.sampler.fit_space`): rays are made in this space, ``bounds`` is
+            the NDC box and ``near``/``far`` are NDC distances (:mod:`nerfmeta.render.ndc`).
     """
 
     images: torch.Tensor
@@ -116,6 +120,7 @@ class Scene:
     normalization: Normalization = field(default_factory=Normalization)
     near_far_source: str = "from file"
     scene_type: SceneType = field(default_factory=SceneType)
+    ndc: NDCSpace | None = None
 
     @property
     def n_views(self) -> int:

@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -117,9 +117,22 @@ GRID_META_HINTS = MetaHints(
 empty-space skipping) so its parameter set never changes."""
 
 
+FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0}
+"""Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them). Every ray ends on
+something (no blank background), so the coarse grid starts a third opaque along a ray (alpha 1e-2 a
+step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50 coarse steps
+find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config (half the samples).
+One exploratory 40 s fit each on the generated forward scene (loaded machine): 20.5 dB with these, 20.4
+with the object defaults, 17.8 without a coarse stage (DirectVoxGO's LLFF choice: its fine stage is too
+slow a start on 2 CPU cores)."""
+
+
 @dataclass(frozen=True)
 class VoxelGridConfig:
     """Voxel-grid backbone settings (defaults tuned for ~100x100 views on a 2-core CPU)."""
+
+    scene_type_defaults: ClassVar[dict[str, dict[str, Any]]] = {"forward": FORWARD_DEFAULTS}
+    """Defaults that differ by kind of scene (:mod:`nerfmeta.data.scene_type`), applied before ``--set``."""
 
     coarse_iters: int = 100
     """Steps of the coarse stage before the fine stage starts (0 skips the coarse stage: the fine stage uses the scene box and no mask)."""

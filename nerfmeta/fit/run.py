@@ -45,6 +45,7 @@ from nerfmeta.fields.registry import build_model, config_from_dict, default_conf
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model, save_checkpoint
 from nerfmeta.geometry.runs import fit_geometry
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
+from nerfmeta.fit.sampler import fit_space
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
@@ -90,9 +91,13 @@ class RunConfig:
     """Iterations after which to render the first test views into ``snapshots/`` (0: the starting point), plus the final one; empty: none."""
 
     def model_config(self, scene=None) -> Any:
-        """The backbone config: defaults, then ``model`` overrides, then (if the config class has
-        one and a scene is given) its ``for_scene`` rule that sizes "auto" fields for the scene."""
-        base = dataclasses.asdict(default_config(self.backbone))
+        """The backbone config: defaults (those of the scene's kind where the config class names some in
+        ``scene_type_defaults``), then ``model`` overrides, then (if the config class has one and a scene is
+        given) its ``for_scene`` rule that sizes "auto" fields for the scene."""
+        default = default_config(self.backbone)
+        base = dataclasses.asdict(default)
+        if scene is not None:
+            base.update(getattr(default, "scene_type_defaults", {}).get(scene.scene_type.kind, {}))
         config = config_from_dict(self.backbone, {**base, **self.model})
         if scene is not None and hasattr(config, "for_scene"):
             config = config.for_scene(scene)
@@ -282,6 +287,7 @@ def fit_in_folder(
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
                        scene_type=config.scene_type)
+    scene = fit_space(scene)  # a forward-facing scene is fitted in NDC
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)
@@ -448,7 +454,7 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         test_views=len(scene.splits.get("test", ())),
         holdout=scene.holdout,
         normalization=scene.normalization.as_json(),
-        scene_type=scene.scene_type.as_json(),
+        scene_type={**scene.scene_type.as_json(), **({"ndc": scene.ndc.as_json()} if scene.ndc is not None else {})},
         resolution=[scene.height, scene.width],
         test_psnr=None if final is None else round(final.psnr, 4),
         test_ssim=None if final is None or final.ssim is None else round(final.ssim, 5),

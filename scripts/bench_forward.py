@@ -1,0 +1,116 @@
+"""Forward-facing fits: NDC against today's bounded grid on the generated LLFF-layout scene (issue 16).
+
+Workload: the scene of :mod:`nerfmeta.collection.forward` (20 views of 160 x 120 by default,
+every 8th, 0, 8, 16, held out: 17 training and 3 test views), written once into a temporary
+folder. Two arms, each ``nerfmeta fit SCENE --init scratch --time-budget BUDGET --eval-every 0
+--checkpoint-every 0 --seed K``: ``ndc`` (the scene detected as forward: rays in NDC) and
+``bounded`` (``--scene-type object``: world rays in the bounded box, as before NDC). Arms are
+interleaved (ndc, bounded, ndc, bounded, ...) so the machine's load falls on both; each fit is a
+fresh process. After each fit the test views are rendered again from its checkpoint and timed
+(rays per second of the rendering alone), and the renders are kept for looking at with ``--keep``.
+
+Usage::
+
+    flock /work/wt/bench.lock .venv/bin/python scripts/bench_forward.py [--reps 3] [--budget 60]
+        [--width 160 --height 120] [--keep DIR] [--set KEY=VALUE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
+from nerfmeta.data import load_scene
+from nerfmeta.fields.registry import build_model, config_from_dict
+from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model
+from nerfmeta.fit.evaluate import render_view
+from nerfmeta.fit.sampler import fit_space
+
+ARMS = {"ndc": ["--scene-type", "auto"], "bounded": ["--scene-type", "object"]}
+
+
+def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: int) -> dict:
+    """One fit in a fresh process; its summary plus the load average before it."""
+    load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
+    cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch",
+           "--time-budget", f"{args.budget:g}", "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
+           *ARMS[arm], *sum((["--set", s] for s in args.set), [])]
+    with open(out.with_suffix(".log"), "w") as log:
+        proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT)
+    if proc.returncode != 0:
+        raise SystemExit(f"bench_forward: {arm} seed {seed} failed (exit {proc.returncode}); see {out.with_suffix('.log')}")
+    return {**json.loads((out / "summary.json").read_text()), "load": load}
+
+
+@torch.no_grad()
+def render_speed(scene_path: Path, run: Path) -> tuple[float, list[np.ndarray]]:
+    """Rays per second rendering the test views of a fitted run from its checkpoint, and the renders (H, W, 3)."""
+    config = json.loads((run / "config.json").read_text())
+    scene = fit_space(load_scene(scene_path, scene_type=config["scene_type"]))
+    model_config = config_from_dict(config["backbone"], config["model"])
+    model = build_model(config["backbone"], model_config, scene.bounds, seed=0)
+    restore_model(model, load_checkpoint(run / CHECKPOINT_NAME))
+    model.eval()
+    background = torch.tensor(config["background"], dtype=torch.float32)
+    views = scene.split_indices("test").tolist()
+    start = time.perf_counter()
+    renders = [render_view(model, scene, v, background) for v in views]
+    seconds = time.perf_counter() - start
+    return len(views) * scene.height * scene.width / seconds, [r.rgb.numpy() for r in renders]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--budget", type=float, default=60.0)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--keep", type=Path, default=None, help="write each run's test renders here (PNG)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="backbone override for both arms")
+    args = parser.parse_args()
+    results: dict[str, list[dict]] = {arm: [] for arm in ARMS}
+    with tempfile.TemporaryDirectory(prefix="bench_forward_") as tmp:
+        scene = make_forward_scene(Path(tmp) / "scene", ForwardSceneConfig(width=args.width, height=args.height))
+        for k in range(args.reps):
+            for arm in ARMS:
+                run = Path(tmp) / f"{arm}{k}"
+                r = fit_once(scene, run, arm, args, k)
+                r["rays_per_s"], renders = render_speed(scene, run)
+                results[arm].append(r)
+                if args.keep is not None:
+                    args.keep.mkdir(parents=True, exist_ok=True)
+                    truth = load_scene(scene).subset("test").images.numpy()
+                    strip = np.concatenate([np.concatenate([t, p], 1) for t, p in zip(truth, renders)], 0)
+                    iio.imwrite(args.keep / f"{arm}_seed{k}.png", (strip * 255 + 0.5).astype(np.uint8))
+                print(f"{arm} seed {k}: {r['test_psnr']:.2f} dB, {r['iters']} iters, {r['samples_per_ray']:.1f} samples/ray, "
+                      f"{r['rays_per_s']:.0f} rays/s rendering, load before {r['load']}", flush=True)
+    print(f"\n{args.reps} runs per arm, interleaved; {args.width} x {args.height}; budget {args.budget:g} s; "
+          f"{datetime.date.today().isoformat()}; load average now {' / '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
+    print("| figure | " + " | ".join(f"{a} median (min-max)" for a in ARMS) + " |")
+    print("|---|" + "---|" * len(ARMS))
+    for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0),
+                               ("samples_per_ray", "samples per ray (test)", 1), ("rays_per_s", "test rendering (rays/s)", 0),
+                               ("peak_rss_mb", "peak RSS (MB)", 0)):
+        cells = []
+        for runs in results.values():
+            values = [float(r[key]) for r in runs]
+            cells.append(f"{statistics.median(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})")
+        print(f"| {label} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

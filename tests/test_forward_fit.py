@@ -1,0 +1,121 @@
+"""Forward-facing scenes are fitted in NDC (nerfmeta.fit.sampler.fit_space); other scenes as before."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
+from nerfmeta.data import load_scene
+from nerfmeta.fit.loop import FitConfig
+from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
+from nerfmeta.fit.sampler import NDC_DEPTH_SCALE, RaySampler, fit_space, view_rays
+from nerfmeta.render.rays import image_rays
+
+TINY = ForwardSceneConfig(width=24, height=18, grid=(3, 3), supersample=1)
+
+
+@pytest.fixture(scope="module")
+def forward_scene(tmp_path_factory):
+    return make_forward_scene(tmp_path_factory.mktemp("fwd") / "scene", TINY)
+
+
+def test_an_object_scene_is_left_as_it_was(tiny_scene):
+    scene = load_scene(tiny_scene)
+    assert scene.scene_type.kind == "object" and fit_space(scene) is scene
+    rays = view_rays(scene, 1, "cpu")
+    o, d = image_rays(scene.poses[1], scene.intrinsics[1], scene.height, scene.width)
+    assert torch.equal(rays.origins, o.reshape(-1, 3)) and torch.equal(rays.directions, d.reshape(-1, 3))
+    assert torch.all(rays.near == scene.near) and torch.all(rays.far == scene.far)
+    g = torch.Generator().manual_seed(3)
+    batch = RaySampler(scene, "train", "cpu").sample(64, g)
+    assert torch.all(batch.near == scene.near) and torch.all(batch.far == scene.far)
+    assert torch.allclose(batch.directions.norm(dim=-1), torch.ones(64))
+
+
+def test_a_forward_scene_is_fitted_in_ndc(forward_scene):
+    scene = fit_space(load_scene(forward_scene))
+    assert scene.ndc is not None and scene.near == 0.0
+    assert fit_space(scene) is scene  # once is enough
+    box = scene.bounds
+    assert box[0, 2] == -NDC_DEPTH_SCALE and box[1, 2] == NDC_DEPTH_SCALE
+    assert torch.all(box[0, :2] <= -0.9) and torch.all(box[1, :2] >= 0.9)  # the reference frustum and a margin
+    for view in range(scene.n_views):
+        rays = view_rays(scene, view, "cpu")
+        assert torch.allclose(rays.directions.norm(dim=-1), torch.ones(len(rays)))
+        assert torch.all(rays.near == 0.0)
+        for t in (rays.near, rays.far):  # every pixel ray, near plane to infinity, lies in the box
+            p = rays.origins + t[:, None] * rays.directions
+            assert torch.all(p >= box[0] - 1e-5) and torch.all(p <= box[1] + 1e-5)
+        far_end = (rays.origins + rays.far[:, None] * rays.directions)[:, 2]
+        assert torch.allclose(far_end, torch.full((len(rays),), NDC_DEPTH_SCALE), atol=1e-5)  # infinity
+    batch = RaySampler(scene, "train", "cpu").sample(32, torch.Generator().manual_seed(0))
+    assert torch.all(batch.near == 0.0)
+    ends = batch.origins + batch.far[:, None] * batch.directions
+    assert torch.allclose(ends[:, 2], torch.full((32,), NDC_DEPTH_SCALE), atol=1e-5) and torch.all(ends >= box[0] - 1e-5)
+
+
+@pytest.mark.parametrize("scene_type,ndc", [("auto", True), ("object", False)])
+def test_fit_records_the_space_and_learns(forward_scene, tmp_path, scene_type, ndc):
+    config = RunConfig(scene=str(forward_scene), scene_type=scene_type, renders=0,
+                       model={"coarse_iters": 10, "growth_steps": [10], "num_voxels": 24**3, "coarse_num_voxels": 12**3,
+                              "coarse_alpha_init": 1e-2},
+                       fit=FitConfig(iters=40, batch_rays=256, eval_every=0, checkpoint_every=0, final_ssim=False))
+    summary = run_fit(config, tmp_path / "run")
+    assert ("ndc" in summary["scene_type"]) is ndc
+    assert summary["scene_type"]["kind"] == ("forward" if ndc else "object")
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["scene_type"] == scene_type
+    records = read_metrics(tmp_path / "run" / "metrics.jsonl")
+    assert records[-1]["train_psnr"] > records[0]["train_psnr"] + 3.0
+
+
+def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forward_scene, tiny_scene):
+    forward = fit_space(load_scene(forward_scene))
+    assert RunConfig(scene="x").model_config(forward).coarse_iters == 50
+    assert RunConfig(scene="x").model_config(forward).coarse_alpha_init == 1e-2
+    assert RunConfig(scene="x", model={"coarse_iters": 7}).model_config(forward).coarse_iters == 7
+    assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).coarse_iters == 100
+
+
+def test_a_classic_llff_folder_fits_end_to_end_in_ndc(tmp_path):
+    """images/ at full size, images_4/ reduced, (h, w, f) of the full size: `fit --downscale 4` reads images_4/."""
+    from nerfmeta.cli import main
+    from nerfmeta.collection.forward import render_forward_scene, write_llff_scene
+    from nerfmeta.data.write import encode_png
+    from nerfmeta.io import write_bytes_atomic
+
+    config = ForwardSceneConfig(width=48, height=36, grid=(3, 3), supersample=1)
+    images, poses, bounds = render_forward_scene(config)
+    scene_dir = tmp_path / "fern_like"
+    write_llff_scene(scene_dir, images, poses, bounds, config.focal)
+    small = images.reshape(9, 9, 4, 12, 4, 3).mean(axis=(2, 4)).round().astype("uint8")
+    for k, image in enumerate(small):
+        write_bytes_atomic(scene_dir / "images_4" / f"view_{k:03d}.png", encode_png(image))
+    scene = load_scene(scene_dir, downscale=4)
+    assert (scene.height, scene.width) == (9, 12) and scene.scene_type.kind == "forward"
+    assert torch.allclose(scene.intrinsics[0], torch.tensor([config.focal / 4, config.focal / 4, 6.0, 4.5]))
+    out = tmp_path / "run"
+    assert main(["fit", str(scene_dir), "--out", str(out), "--downscale", "4", "--init", "scratch", "--iters", "12",
+                 "--batch-rays", "128", "--eval-every", "0", "--checkpoint-every", "0", "--set", "coarse_iters=6"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scene_type"]["kind"] == "forward" and "ndc" in summary["scene_type"]
+    assert summary["resolution"] == [9, 12] and summary["iters"] == 12 and summary["test_psnr"] is not None
+    assert json.loads((out / "config.json").read_text())["model"]["coarse_alpha_init"] == 1e-2  # the forward defaults
+
+
+def test_a_forward_scene_ndc_cannot_hold_is_refused_in_one_line(forward_scene):
+    from dataclasses import replace
+
+    from nerfmeta.data.scene_type import SceneType
+    from nerfmeta.errors import ConfigError
+
+    scene = load_scene(forward_scene)
+    turned = scene.poses.clone()
+    c, s = 0.0, 1.0  # the first camera turned 90 degrees about the up axis: it looks sideways
+    turn = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    turned[0, :3, :3] = turned[0, :3, :3] @ turn
+    with pytest.raises(ConfigError, match="--scene-type object"):
+        fit_space(replace(scene, poses=turned, scene_type=SceneType("forward", "set by the user", detected=False)))
