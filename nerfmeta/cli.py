@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "nerfmeta.commands.inspect",
     "nerfmeta.commands.fit",
     "nerfmeta.commands.poses",
+    "nerfmeta.commands.render",
     "nerfmeta.commands.make_collection",
     "nerfmeta.commands.pretrain",
     "nerfmeta.commands.demo",
