@@ -15,9 +15,14 @@ Parts (run under ``flock /work/wt/bench.lock``; each records the load average be
 * ``collection``: a ``nerfmeta make-collection`` chair at 256 px (its 40 training views, poses
   removed): whether the generated objects carry enough texture for SIFT.
 * ``beer``: ``../shared/data/real/beer/images`` (71 frames, 720 x 1280) copied without
-  ``poses_bounds.npy``; ``nerfmeta poses`` at ``--max-side`` 640 (``--matcher`` sequential, the
-  frames of a walk-around video); views registered, rotation and centre errors against the COLMAP
-  poses it ships (read by nerfmeta's LLFF parser), after a similarity.
+  ``poses_bounds.npy``; ``nerfmeta poses`` at ``--max-side`` 640, with sequential and with
+  exhaustive matching (``--beer-matchers``); views registered, rotation and centre
+  errors against the COLMAP poses it ships (``poses_bounds.npy`` converted by nerfmeta's LLFF
+  parser's ``llff_to_opengl``): after one similarity over all views, and, since both pose sets put
+  a few frames of the walk on the wrong side of the can (consecutive frames more than 90 degrees
+  apart: a symmetric can on a repeating tile grid), per step (the rotation from each frame to the
+  next, no alignment needed) and after a similarity over the longest run of frames with no such
+  jump in either set.
 
 Usage::
 
@@ -43,7 +48,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import sfm_scenes  # noqa: E402
 
-from nerfmeta.data.registry import load_scene  # noqa: E402
+from nerfmeta.data.llff import llff_to_opengl  # noqa: E402
 from nerfmeta.data.sfm import SfmConfig, compute_poses  # noqa: E402
 
 BEER = ROOT.parent / "shared" / "data" / "real" / "beer"
@@ -128,6 +133,36 @@ def collection(work: Path) -> dict:
     return {"views": 40, "load": before, "wall_s": time.perf_counter() - t0, **outcome}
 
 
+def step_rotations_deg(poses: np.ndarray) -> np.ndarray:
+    """(n - 1,) rotation angle between consecutive cameras (a video's frames turn a few degrees each)."""
+    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def relative_rotation_errors_deg(estimated: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(n - 1,) angle between the estimated and the true rotation from each frame to the next (no alignment needed)."""
+    rel_e = np.einsum("nji,njk->nik", estimated[:-1, :3, :3], estimated[1:, :3, :3])
+    rel_t = np.einsum("nji,njk->nik", true[:-1, :3, :3], true[1:, :3, :3])
+    diff = np.einsum("nji,njk->nik", rel_e, rel_t)
+    return np.degrees(np.arccos(np.clip((np.trace(diff, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def segments(*pose_sets: np.ndarray, jump_deg: float = 90.0) -> list[tuple[int, int]]:
+    """``[start, end)`` runs of consecutive frames with no step above ``jump_deg`` in any of the pose sets."""
+    bad = np.zeros(len(pose_sets[0]) - 1, bool)
+    for poses in pose_sets:
+        bad |= step_rotations_deg(poses) > jump_deg
+    cuts = [0, *(int(i) + 1 for i in np.flatnonzero(bad)), len(pose_sets[0])]
+    return [(a, b) for a, b in zip(cuts, cuts[1:]) if b > a]
+
+
+def shipped_beer_poses() -> dict[str, np.ndarray]:
+    """Beer's COLMAP poses by image name, OpenGL camera-to-world (``poses_bounds.npy`` rows follow the sorted ``images/``)."""
+    rows = np.load(BEER / "poses_bounds.npy")
+    poses = llff_to_opengl(rows[:, :15].reshape(-1, 3, 5)[:, :, :4])
+    return dict(zip(sorted(p.name for p in (BEER / "images").iterdir()), poses))
+
+
 def beer(work: Path, max_side: int, matcher: str) -> dict:
     photos = work / "beer_photos"
     shutil.rmtree(photos, ignore_errors=True)
@@ -138,14 +173,21 @@ def beer(work: Path, max_side: int, matcher: str) -> dict:
     t0 = time.perf_counter()
     result = compute_poses(photos, out, SfmConfig(max_side=max_side, matcher=matcher, min_registered=0.5))
     wall = time.perf_counter() - t0
-    shipped = load_scene(BEER, downscale=8, normalize=False)
-    true = {name.split("/")[-1]: pose.double().numpy() for name, pose in zip(shipped.image_names, shipped.poses)}
+    true = shipped_beer_poses()
     poses = sfm_poses(out)
     names = sorted(set(poses) & set(true))
+    est, ref = np.stack([poses[n] for n in names]), np.stack([true[n] for n in names])
+    runs = segments(est, ref)
+    longest = max(runs, key=lambda r: r[1] - r[0])
+    rel = relative_rotation_errors_deg(est, ref)
     return {"views": len(list(photos.iterdir())), "registered": len(result.registered), "max_side": max_side,
             "matcher": matcher, "load": before, "wall_s": wall, "phases": result.seconds,
-            "unregistered": list(result.unregistered),
-            **pose_report(np.stack([poses[n] for n in names]), np.stack([true[n] for n in names]))}
+            "unregistered": list(result.unregistered), "global": pose_report(est, ref),
+            "jumps_sfm": [names[i + 1] for i in np.flatnonzero(step_rotations_deg(est) > 90)],
+            "jumps_shipped": [names[i + 1] for i in np.flatnonzero(step_rotations_deg(ref) > 90)],
+            "step_rotation_error_median_deg": float(np.median(rel)), "step_rotation_error_p90_deg": float(np.percentile(rel, 90)),
+            "longest_segment": [names[longest[0]], names[longest[1] - 1]],
+            "longest_segment_errors": pose_report(est[longest[0]:longest[1]], ref[longest[0]:longest[1]])}
 
 
 def main() -> None:
@@ -155,7 +197,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--iters", type=int, default=400, help="fit length for the SfM-vs-true comparison (0: none)")
     parser.add_argument("--beer-max-side", type=int, default=640)
-    parser.add_argument("--beer-matcher", default="sequential", choices=("sequential", "exhaustive"))
+    parser.add_argument("--beer-matchers", default="sequential,exhaustive", help="comma-separated: sequential, exhaustive")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     results = {}
@@ -165,7 +207,7 @@ def main() -> None:
         elif part == "collection":
             results[part] = collection(args.work)
         else:
-            results[part] = beer(args.work, args.beer_max_side, args.beer_matcher)
+            results[part] = [beer(args.work, args.beer_max_side, m) for m in args.beer_matchers.split(",")]
         print(json.dumps({part: results[part]}, indent=1), flush=True)
     (args.work / "results.json").write_text(json.dumps(results, indent=1))
 
