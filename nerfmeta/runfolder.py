@@ -93,8 +93,8 @@ LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
     Layout("classifier", "classifier train", ("classifier.json", "model.safetensors", "history.json", "training_curve.png"),
            legacy=("classifier.json",)),
     Layout("collection", "make-collection", ("collection.json", "preview.png"), legacy=("collection.json",)),
-    Layout("poses", "poses", ("transforms.json", "sfm.json"), folders=("images", "colmap")),
     Layout("demo", "demo", (), folders=("scenes", "report"), runs=("fit",), legacy=("scenes/collection.json",)),
+    Layout("poses", "poses", ("transforms.json", "sfm.json"), folders=("images", "colmap")),
 )}
 
 
