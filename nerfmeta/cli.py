@@ -23,6 +23,8 @@ from nerfmeta.errors import NerfmetaError
 COMMAND_MODULES = (
     "nerfmeta.commands.inspect",
     "nerfmeta.commands.fit",
+    "nerfmeta.commands.poses",
+    "nerfmeta.commands.render",
     "nerfmeta.commands.make_collection",
     "nerfmeta.commands.pretrain",
     "nerfmeta.commands.demo",

@@ -4,7 +4,7 @@ classifiers, collections, the demo and sweeps.
 The rules, the same for every kind of run:
 
 - **Ours.** A folder nerfmeta made holds a marker file :data:`MARKER` naming its kind
-  (``fit``, ``category``, ``meta``, ``classifier``, ``collection``, ``demo``). A folder written
+  (``fit``, ``category``, ``meta``, ``classifier``, ``collection``, ``poses``, ``demo``). A folder written
   before the marker existed is recognised by the files its kind always wrote (see
   :attr:`Layout.legacy`: e.g. a fit's ``config.json`` with a ``scene`` key beside a
   ``metrics.jsonl``); the marker is added when such a folder is resumed or replaced.
@@ -97,6 +97,7 @@ LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
     Layout("sweep", "sweep", ("spec.json", "study.journal", "study.journal.lock", "ask.lock", "report.md", "*.png"),
            folders=("trials", "logs", "plots")),
     Layout("demo", "demo", (), folders=("scenes", "report"), runs=("fit",), legacy=("scenes/collection.json",)),
+    Layout("poses", "poses", ("transforms.json", "sfm.json"), folders=("images", "colmap")),
 )}
 
 

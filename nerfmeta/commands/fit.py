@@ -51,7 +51,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         epilog=backbone_fields_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file)")
+    p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file), or a folder of photos without poses "
+                   "(structure from motion is run first and its result cached; see 'nerfmeta poses')")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
     options.add_config_options(
         p, RunConfig, only=RUN_OPTIONS,
@@ -162,6 +163,9 @@ def _made_by_another_init(out: str) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from nerfmeta.commands.poses import poses_for_photos
+
+    args.scene = poses_for_photos(args.scene, verbose=getattr(args, "verbose", False))
     init = args.init or "auto"
     if init == "auto" and args.resume and _made_by_another_init(args.out):
         init = "scratch"  # a plain resume: run_fit continues with the init saved in config.json

@@ -22,8 +22,8 @@ from nerfmeta.errors import ConfigError, SceneError
 __all__ = ["FORMATS", "LoadOptions", "SceneFormat", "detect_format", "load_scene", "parse_background"]
 
 POSE_TOOLS_HINT = (
-    "COLMAP followed by LLFF's imgs2poses.py (poses_bounds.npy), or nerfstudio's ns-process-data "
-    "(transforms.json), computes them from the images"
+    "'nerfmeta poses PHOTOS --out SCENE' computes them from the images (and 'nerfmeta fit PHOTOS' runs it for you), "
+    "as do COLMAP followed by LLFF's imgs2poses.py (poses_bounds.npy) and nerfstudio's ns-process-data (transforms.json)"
 )
 
 

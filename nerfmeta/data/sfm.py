@@ -1,0 +1,523 @@
+"""Camera poses from a folder of photos: structure from motion with pycolmap.
+
+``PHOTOS/`` (PNG/JPEG, no pose file) -> ``SCENE/``, a nerfstudio scene that
+:mod:`nerfmeta.data.nerfstudio` reads::
+
+    SCENE/transforms.json        fl_x, fl_y, cx, cy, w, h (PINHOLE), near, far, frames[file_path, transform_matrix]
+    SCENE/images/NAME            the photos as fitted: EXIF orientation applied, longest side at most
+                                 ``max_side``, undistorted when the camera model has distortion
+    SCENE/colmap/                the sparse model those poses come from (cameras/images/points3D.bin)
+    SCENE/sfm.json               what happened: photos, registered, unregistered, reprojection error, seconds per phase
+
+The phases (:func:`compute_poses`): read every photo (one line naming a file Pillow cannot read,
+or photos of different sizes) and write the prepared copies; SIFT features; matching (exhaustive, or
+sequential for a video's frames); incremental mapping (the largest model is kept); undistortion;
+conversion. No vocabulary tree is used (nothing is downloaded).
+
+Conventions (:func:`opengl_camera_to_world`): COLMAP stores world-to-camera ``(q, t)`` with the
+OpenCV camera (x right, y down, looking along +z); nerfmeta, like nerfstudio, uses OpenGL
+camera-to-world matrices (x right, y up, looking along -z). The world is turned as nerfstudio's
+``colmap_to_json`` turns it (:data:`WORLD_FROM_COLMAP`: COLMAP's y, z become -z, y).
+
+The SfM scene is written through :mod:`nerfmeta.runfolder` (kind ``poses``), built aside and
+swapped in complete, so a failure leaves nothing half-written; the photo folder is only read.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Literal, Sequence
+
+import numpy as np
+from PIL import Image
+
+from nerfmeta.config import bounded
+from nerfmeta.data.images import decode_array, image_shape, list_images
+from nerfmeta.data.registry import FORMATS
+from nerfmeta.errors import SceneError
+from nerfmeta.io import write_json
+from nerfmeta.runfolder import run_folder
+
+log = logging.getLogger(__name__)
+
+TRANSFORMS = "transforms.json"
+REPORT = "sfm.json"
+IMAGES = "images"
+COLMAP = "colmap"
+MIN_PHOTOS = 3
+"""Fewest photos structure from motion is attempted on (two give a pair, not a scene to fit)."""
+WORLD_FROM_COLMAP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""The rotation applied to COLMAP's world, as nerfstudio's ``colmap_to_json`` applies it (rows 0, 2, 1; the last negated)."""
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0])
+"""Camera axes: OpenCV (x right, y down, z forward) to OpenGL (x right, y up, z backward)."""
+DISTORTION_MODELS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+"""The COLMAP camera models read here and the order of their parameters."""
+
+Progress = Callable[[str, int, int], None]
+"""``progress(phase, done, total)``: called as each phase advances (the CLI draws a bar per phase)."""
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """How camera poses are computed from photos."""
+
+    max_side: int = bounded(1600, low=16)
+    """Longest image side used (larger photos are downscaled on load, area filter); the written images have it."""
+    matcher: Literal["exhaustive", "sequential"] = "exhaustive"
+    """Which pairs are matched: every pair, or neighbours in file-name order (for a video's frames; faster)."""
+    camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
+    """COLMAP camera model shared by all photos; a model with distortion is undistorted to PINHOLE images."""
+    max_features: int = bounded(8192, low=64)
+    """Most SIFT features per image."""
+    min_registered: float = bounded(1.0, low=0, high=1, low_open=True)
+    """Fraction of the photos that must register (a lower fraction is an error naming the ones that did not)."""
+    threads: int = bounded(-1, low=-1)
+    """Threads COLMAP uses (-1: all cores)."""
+    seed: int = bounded(0, low=0)
+    """Seed of COLMAP's random sampling (RANSAC, mapping)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Pure conversions
+
+
+def quaternion_to_matrix(q_wxyz: Sequence[float]) -> np.ndarray:
+    """(3, 3) rotation of a quaternion in COLMAP's text order ``(w, x, y, z)`` (normalised first)."""
+    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64) / np.linalg.norm(q_wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """``(w, x, y, z)`` with ``w >= 0`` of a (3, 3) rotation (the inverse of :func:`quaternion_to_matrix`)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    # the largest of the four squared components is computed directly, the others from it (stable for every rotation)
+    squares = np.array([1 + r[0, 0] + r[1, 1] + r[2, 2], 1 + r[0, 0] - r[1, 1] - r[2, 2],
+                        1 - r[0, 0] + r[1, 1] - r[2, 2], 1 - r[0, 0] - r[1, 1] + r[2, 2]])
+    k = int(np.argmax(squares))
+    s = 2.0 * math.sqrt(max(squares[k], 1e-300))
+    if k == 0:
+        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif k == 1:
+        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif k == 2:
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
+    else:
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
+    q = np.array(q)
+    return q if q[0] >= 0 else -q
+
+
+def opengl_camera_to_world(q_wxyz: Sequence[float], t: Sequence[float], *, world: np.ndarray = WORLD_FROM_COLMAP) -> np.ndarray:
+    """(4, 4) OpenGL camera-to-world matrix of a COLMAP world-to-camera pose ``x_cam = R(q) x_world + t``.
+
+    The camera centre is ``-R^T t``; the camera axes are flipped from OpenCV to OpenGL
+    (:data:`OPENGL_FROM_OPENCV`) and the world is turned by ``world`` (default
+    :data:`WORLD_FROM_COLMAP`; the identity keeps COLMAP's world).
+    """
+    rotation = quaternion_to_matrix(q_wxyz)
+    c2w = np.eye(4)
+    c2w[:3, :3] = world @ rotation.T @ OPENGL_FROM_OPENCV
+    c2w[:3, 3] = world @ (-rotation.T @ np.asarray(t, dtype=np.float64))
+    return c2w
+
+
+def colmap_world_to_camera(c2w: np.ndarray, *, world: np.ndarray = WORLD_FROM_COLMAP) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`opengl_camera_to_world`: ``(q_wxyz, t)`` of a (4, 4) OpenGL camera-to-world matrix."""
+    rotation_c2w = world.T @ c2w[:3, :3] @ OPENGL_FROM_OPENCV  # COLMAP world, OpenCV camera
+    centre = world.T @ c2w[:3, 3]
+    rotation = rotation_c2w.T
+    return matrix_to_quaternion(rotation), -rotation @ centre
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics in pixels (pixel centres at ``i + 0.5``, as COLMAP and nerfmeta use) and distortion."""
+
+    width: int
+    """Image width."""
+    height: int
+    """Image height."""
+    fx: float
+    """Focal length along x."""
+    fy: float
+    """Focal length along y."""
+    cx: float
+    """Principal point x."""
+    cy: float
+    """Principal point y."""
+    distortion: dict[str, float] = field(default_factory=dict)
+    """Non-zero distortion coefficients by name (``k1``, ``k2``, ``p1``, ``p2``); empty for a pinhole."""
+
+
+def camera_from_colmap(model: str, params: Sequence[float], width: int, height: int) -> PinholeCamera:
+    """The :class:`PinholeCamera` of a COLMAP camera (``model`` in :data:`DISTORTION_MODELS`, its ``params``).
+
+    Raises:
+        SceneError: another camera model (fisheye, ...), or the wrong number of parameters.
+    """
+    names = DISTORTION_MODELS.get(model)
+    if names is None:
+        raise SceneError(f"COLMAP camera model {model} is not supported (supported: {', '.join(DISTORTION_MODELS)})")
+    if len(params) != len(names):
+        raise SceneError(f"COLMAP camera model {model} needs {len(names)} parameters, got {len(params)}")
+    values = dict(zip(names, (float(p) for p in params)))
+    fx = values.get("fx", values.get("f"))
+    fy = values.get("fy", values.get("f"))
+    distortion = {k: v for k, v in values.items() if k in ("k1", "k2", "p1", "p2") and v != 0.0}
+    return PinholeCamera(int(width), int(height), fx, fy, values["cx"], values["cy"], distortion)
+
+
+def near_far_from_depths(depths: Sequence[np.ndarray], *, margin: float = 0.1) -> tuple[float, float]:
+    """``(near, far)`` ray distances that hold the sparse points every camera sees.
+
+    Args:
+        depths: per camera, (k,) depths along its optical axis of the points it observes.
+        margin: the 0.1 % and 99.9 % depth percentiles (over all cameras) are widened by this fraction.
+    """
+    every = np.concatenate([np.asarray(d, dtype=np.float64).reshape(-1) for d in depths] or [np.zeros(0)])
+    every = every[np.isfinite(every) & (every > 0)]
+    if every.size == 0:
+        raise SceneError("the reconstruction has no 3-D points in front of the cameras")
+    near = float(np.percentile(every, 0.1)) * (1 - margin)
+    far = float(np.percentile(every, 99.9)) * (1 + margin)
+    return near, max(far, near * 1.01)
+
+
+def photo_hash(paths: Sequence[Path], config: SfmConfig) -> str:
+    """A hex key of the photos' names and contents and of ``config`` (what a cached SfM scene was made from)."""
+    digest = hashlib.sha256(json.dumps(asdict(config), sort_keys=True).encode())
+    for path in paths:
+        digest.update(path.name.encode() + b"\0")
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+        digest.update(b"\0")
+    return digest.hexdigest()[:32]
+
+
+# --------------------------------------------------------------------------------------------
+# Photos
+
+
+def list_photos(folder: str | os.PathLike) -> list[Path]:
+    """The photos of ``folder`` (PNG/JPEG directly in it, else in its ``images/``), sorted by name."""
+    folder = Path(folder)
+    return list_images(folder) or list_images(folder / IMAGES)
+
+
+def is_photo_folder(path: str | os.PathLike) -> bool:
+    """True for a folder of photos without any pose file a scene parser reads."""
+    path = Path(path)
+    return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(list_photos(path))
+
+
+def check_photos(paths: Sequence[Path], folder: Path) -> tuple[int, int]:
+    """``(height, width)`` the photos share as shown (EXIF orientation applied); read from the headers.
+
+    Raises:
+        SceneError: fewer than :data:`MIN_PHOTOS`, an unreadable file, or photos of different sizes.
+    """
+    if len(paths) < MIN_PHOTOS:
+        found = ", ".join(p.name for p in paths) or "none"
+        raise SceneError(f"{folder}: {len(paths)} photo(s) ({found}); structure from motion needs at least {MIN_PHOTOS} "
+                         "overlapping photos of the scene from different places")
+    sizes = {p: image_shape(p) for p in paths}
+    first = paths[0]
+    for path, size in sizes.items():
+        if size != sizes[first] and sorted(size) == sorted(sizes[first]):
+            raise SceneError(f"{path}: is {size[1]}x{size[0]} but {first.name} is {sizes[first][1]}x{sizes[first][0]} "
+                             "(portrait and landscape mixed); rotate them to one orientation")
+        if size != sizes[first]:
+            raise SceneError(f"{path}: is {size[1]}x{size[0]} but {first.name} is {sizes[first][1]}x{sizes[first][0]}; "
+                             "all photos must come from one camera at one size")
+    return sizes[first]
+
+
+def prepared_size(height: int, width: int, max_side: int) -> tuple[int, int]:
+    """``(height, width)`` scaled so that the longest side is at most ``max_side`` (unchanged when it is)."""
+    scale = min(1.0, max_side / max(height, width))
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def prepare_photo(source: Path, dest: Path, size: tuple[int, int]) -> None:
+    """Write ``source`` to ``dest`` as RGB of ``size`` = (height, width): EXIF orientation applied,
+    alpha composited on white, area-downscaled; a file that needs none of this is copied as it is."""
+    array = decode_array(source)
+    if array.shape[:2] == size and array.ndim == 3 and array.shape[2] == 3 and array.dtype == np.uint8 \
+            and _stored_as_shown(source):
+        shutil.copyfile(source, dest)
+        return
+    if array.dtype != np.uint8:
+        array = (array.astype(np.float64) / 65535.0 * 255.0 + 0.5).astype(np.uint8)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.shape[2] in (2, 4):
+        rgb, alpha = array[..., :-1].astype(np.float64), array[..., -1:].astype(np.float64) / 255.0
+        array = (rgb * alpha + 255.0 * (1 - alpha) + 0.5).astype(np.uint8)
+    if array.shape[2] == 1:
+        array = np.repeat(array, 3, axis=2)
+    image = Image.fromarray(array)
+    if image.size != (size[1], size[0]):
+        image = image.resize((size[1], size[0]), Image.Resampling.BOX)
+    if dest.suffix.lower() in (".jpg", ".jpeg"):
+        image.save(dest, quality=95)
+    else:
+        image.save(dest)
+
+
+def _stored_as_shown(path: Path) -> bool:
+    """True when the file carries no EXIF rotation (its stored pixels are what a viewer shows)."""
+    with Image.open(path) as image:
+        return image.getexif().get(0x0112, 1) in (1, None)
+
+
+# --------------------------------------------------------------------------------------------
+# COLMAP
+
+
+@contextlib.contextmanager
+def _colmap_quiet(verbose: bool) -> Iterator[None]:
+    """COLMAP's log lines below FATAL held back (unless ``verbose``) and its setting restored after."""
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = old if verbose else max(old, 3)  # nerfmeta says what failed, in one line
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+@dataclass(frozen=True)
+class SfmResult:
+    """What :func:`compute_poses` made."""
+
+    scene: Path
+    """The scene folder (``transforms.json`` and ``images/``)."""
+    photos: int
+    """Photos given."""
+    registered: tuple[str, ...]
+    """Names of the photos that have a pose."""
+    unregistered: tuple[str, ...]
+    """Names of the photos that did not register."""
+    reprojection_error: float
+    """Mean reprojection error of the sparse points, pixels."""
+    points: int
+    """Sparse 3-D points."""
+    seconds: dict[str, float]
+    """Wall-clock time per phase."""
+
+    def as_json(self) -> dict:
+        return {**asdict(self), "scene": str(self.scene), "registered": list(self.registered),
+                "unregistered": list(self.unregistered)}
+
+
+def _largest_model(models: dict) -> "object | None":
+    return max(models.values(), key=lambda m: m.num_reg_images(), default=None)
+
+
+def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfig, progress: Progress,
+                seconds: dict[str, float]):
+    """Features, matches and incremental mapping of ``names`` in ``images``; the largest model (or None).
+
+    ``work`` receives COLMAP's database and models; ``seconds`` gets the time of each phase.
+    """
+    import pycolmap
+
+    database = work / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = config.threads
+    extraction.sift.max_num_features = config.max_features
+    t0 = time.perf_counter()
+    progress("features", 0, 1)
+    pycolmap.extract_features(database, images, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    progress("features", 1, 1)
+    seconds["features"] = time.perf_counter() - t0
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = config.threads
+    t0 = time.perf_counter()
+    progress("matching", 0, 1)
+    if config.matcher == "sequential":
+        pycolmap.match_sequential(database, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    progress("matching", 1, 1)
+    seconds["matching"] = time.perf_counter() - t0
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = config.threads
+    mapping.random_seed = config.seed
+    mapping.min_model_size = MIN_PHOTOS
+    registered = [0]
+
+    def next_image() -> None:
+        registered[0] += 1
+        progress("mapping", min(registered[0], len(names)), len(names))
+
+    t0 = time.perf_counter()
+    progress("mapping", 0, len(names))
+    sparse = work / "sparse"
+    sparse.mkdir()
+    models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
+    seconds["mapping"] = time.perf_counter() - t0
+    model = _largest_model(models)
+    progress("mapping", 0 if model is None else model.num_reg_images(), len(names))
+    return model
+
+
+def _undistorted(model, images: Path, work: Path):
+    """``(model, image folder)`` with the distortion removed (COLMAP's undistorter; PINHOLE cameras)."""
+    import pycolmap
+
+    model_dir = work / "distorted"
+    model_dir.mkdir()
+    model.write(model_dir)
+    out = work / "undistorted"
+    pycolmap.undistort_images(out, model_dir, images)
+    return pycolmap.Reconstruction(out / "sparse"), out / "images"
+
+
+def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
+    """The ``transforms.json`` document (nerfstudio layout) of a pinhole ``model``'s images ``names``."""
+    by_name = {image.name: image for image in model.images.values() if image.has_pose}
+    first = by_name[names[0]]
+    cam = model.cameras[first.camera_id]
+    camera = camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height)
+    frames, depths = [], []
+    for name in names:
+        image = by_name[name]
+        pose = image.cam_from_world()
+        x, y, z, w = pose.rotation.quat  # pycolmap keeps Eigen's (x, y, z, w) order
+        frames.append({"file_path": f"{IMAGES}/{name}",
+                       "transform_matrix": opengl_camera_to_world((w, x, y, z), pose.translation).tolist()})
+        points = np.array([model.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]).reshape(-1, 3)
+        depths.append((points @ pose.rotation.matrix().T + pose.translation)[:, 2])
+    near, far = near_far_from_depths(depths)
+    applied = np.eye(4)[:3]
+    applied[:, :3] = WORLD_FROM_COLMAP
+    doc = {"camera_model": "OPENCV" if camera.distortion else "PINHOLE", "w": camera.width, "h": camera.height,
+           "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, **camera.distortion,
+           "near": near, "far": far, "applied_transform": applied.tolist(), "frames": frames}
+    return doc, camera
+
+
+def _unregistered_error(folder: Path, missing: Sequence[str], total: int, config: SfmConfig) -> SceneError:
+    shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+    if len(missing) == total:
+        return SceneError(f"{folder}: structure from motion found no two photos that overlap enough to start a model "
+                          f"({total} photos); take overlapping photos of one textured scene from nearby viewpoints")
+    return SceneError(f"{folder}: {len(missing)} of {total} photos did not register: {shown}; they share too few "
+                      f"features with the others (retake or remove them, or allow it with --min-registered "
+                      f"{max(0.01, math.floor((total - len(missing)) / total * 100) / 100):g})")
+
+
+def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: SfmConfig = SfmConfig(), *,
+                  overwrite: bool = False, progress: Progress | None = None, verbose: bool = False) -> SfmResult:
+    """Structure from motion on the photos of ``photos``, written as a nerfstudio scene to ``out`` (see the module doc).
+
+    ``out`` is a run folder of kind ``poses``: new or empty (or, with ``overwrite``, a poses scene
+    of ours), built aside and swapped in complete; ``photos`` is only read.
+
+    Raises:
+        SceneError: too few photos, an unreadable one, mixed sizes, no overlap, or too few registered
+            (naming the photos that did not). RunFolderError: ``out`` cannot take the scene.
+    """
+    import pycolmap  # noqa: F401  (a missing extra fails here, before anything is written)
+
+    progress = progress or (lambda phase, done, total: None)
+    folder = Path(photos)
+    paths = list_photos(folder)
+    if not folder.is_dir():
+        raise SceneError(f"{folder}: not a folder of photos")
+    height, width = check_photos(paths, folder)
+    size = prepared_size(height, width, config.max_side)
+    seconds: dict[str, float] = {}
+    with run_folder(out, "poses", overwrite=overwrite, aside=True, protect=(folder,)) as run, \
+            tempfile.TemporaryDirectory(prefix="nerfmeta-sfm-") as tmp, _colmap_quiet(verbose):
+        work = Path(tmp)
+        prepared = work / "photos"
+        prepared.mkdir()
+        t0 = time.perf_counter()
+        names = [p.name for p in paths]
+        for k, path in enumerate(paths):
+            progress("photos", k, len(paths))
+            prepare_photo(path, prepared / path.name, size)
+        progress("photos", len(paths), len(paths))
+        seconds["photos"] = time.perf_counter() - t0
+        model = reconstruct(prepared, names, work, config, progress, seconds)
+        registered = [] if model is None else sorted(i.name for i in model.images.values() if i.has_pose)
+        missing = [n for n in names if n not in set(registered)]
+        if len(registered) < MIN_PHOTOS or len(registered) < config.min_registered * len(names) - 1e-9:
+            raise _unregistered_error(folder, missing, len(names), config)
+        if missing:
+            log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
+        t0 = time.perf_counter()
+        cam = next(iter(model.cameras.values()))
+        image_dir = prepared
+        if camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height).distortion:
+            model, image_dir = _undistorted(model, prepared, work)
+        doc, _ = scene_document(model, registered)
+        seconds["undistort"] = time.perf_counter() - t0
+        (run.dir / IMAGES).mkdir()
+        for name in registered:
+            shutil.copyfile(image_dir / name, run.dir / IMAGES / name)
+        (run.dir / COLMAP).mkdir()
+        model.write_binary(str(run.dir / COLMAP))
+        result = SfmResult(run.path, len(names), tuple(registered), tuple(missing),
+                           float(model.compute_mean_reprojection_error()), int(model.num_points3D()),
+                           {k: round(v, 3) for k, v in seconds.items()})
+        write_json(run.dir / REPORT, {**result.as_json(), "config": asdict(config)})
+        write_json(run.dir / TRANSFORMS, doc)
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# The cache ``nerfmeta fit PHOTOS`` uses
+
+
+def cache_root() -> Path:
+    """Where SfM scenes are cached: ``$NERFMETA_CACHE/poses``, else ``$XDG_CACHE_HOME/nerfmeta/poses`` (``~/.cache``)."""
+    base = os.environ.get("NERFMETA_CACHE")
+    if base:
+        return Path(base) / "poses"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nerfmeta" / "poses"
+
+
+def cached_poses(photos: str | os.PathLike, config: SfmConfig = SfmConfig(), *, progress: Progress | None = None,
+                 verbose: bool = False) -> tuple[Path, bool]:
+    """``(scene folder, was cached)``: the SfM scene of ``photos`` from the cache, computed there when missing.
+
+    The key is the photos' names and contents and ``config`` (:func:`photo_hash`), so changing a
+    photo or an option computes a new scene. A cached scene that lost its ``transforms.json`` is
+    recomputed.
+    """
+    folder = Path(photos)
+    paths = list_photos(folder)
+    check_photos(paths, folder)
+    scene = cache_root() / photo_hash(paths, config)
+    if (scene / TRANSFORMS).is_file():
+        return scene, True
+    compute_poses(folder, scene, config, overwrite=True, progress=progress, verbose=verbose)
+    return scene, False

@@ -1,0 +1,99 @@
+"""Camera paths for videos (:mod:`nerfmeta.render.paths`): orbits look at the centre, spirals stay near the mean pose."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from nerfmeta.render.cameras import look_at
+from nerfmeta.render.paths import (
+    choose_path,
+    direction_spread_deg,
+    focus_depth,
+    look_at_centre,
+    mean_pose,
+    orbit_path,
+    spiral_path,
+)
+
+UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def ring(n: int, centre=(0.5, -1.0, 0.25), radius: float = 4.0, height: float = 2.0, turn: float = 1.0) -> torch.Tensor:
+    c = torch.tensor(centre, dtype=torch.float64)
+    az = torch.arange(n, dtype=torch.float64) * (2 * math.pi * turn / n)
+    eyes = c + torch.stack([radius * torch.cos(az), radius * torch.sin(az), torch.full_like(az, height)], -1)
+    return look_at(eyes, c.expand_as(eyes), UP.expand_as(eyes))
+
+
+def forward_facing(n: int = 12, seed: int = 0) -> torch.Tensor:
+    """Cameras on a 1 x 0.6 patch of the plane y = 0, all looking along +y at a wall 5 units away."""
+    g = torch.Generator().manual_seed(seed)
+    eyes = torch.stack([torch.rand(n, generator=g, dtype=torch.float64) - 0.5, torch.zeros(n, dtype=torch.float64),
+                        0.6 * (torch.rand(n, generator=g, dtype=torch.float64) - 0.5)], -1)
+    targets = eyes + torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64) + 0.1 * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    return look_at(eyes, targets, UP.expand_as(eyes))
+
+
+def test_look_at_centre_of_a_ring() -> None:
+    torch.testing.assert_close(look_at_centre(ring(7)), torch.tensor([0.5, -1.0, 0.25], dtype=torch.float64))
+
+
+def test_parallel_axes_have_no_centre() -> None:
+    poses = look_at(torch.tensor([[0.0, 0, 0], [1.0, 0, 0]], dtype=torch.float64),
+                    torch.tensor([[0.0, 5, 0], [1.0, 5, 0]], dtype=torch.float64), UP.expand(2, 3))
+    with pytest.raises(ValueError, match="parallel"):
+        look_at_centre(poses)
+
+
+def test_orbit_looks_at_the_centre_at_the_cameras_distance_and_height() -> None:
+    cams = ring(5, turn=0.5)  # half a ring: the orbit still goes all the way round
+    path = orbit_path(cams, 24)
+    centre = torch.tensor([0.5, -1.0, 0.25], dtype=torch.float64)
+    to_centre = centre - path[:, :3, 3]
+    to_centre = to_centre / to_centre.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(-path[:, :3, 2], to_centre)  # every frame looks at the centre
+    offsets = path[:, :3, 3] - centre
+    torch.testing.assert_close(offsets[:, 2], torch.full((24,), 2.0, dtype=torch.float64))
+    torch.testing.assert_close(offsets[:, :2].norm(dim=-1), torch.full((24,), 4.0, dtype=torch.float64))
+    torch.testing.assert_close(path[0], cams[0])  # it starts at the first camera
+    angles = torch.atan2(offsets[:, 1], offsets[:, 0])
+    assert float(torch.remainder(angles[12] - angles[0], 2 * math.pi)) == pytest.approx(math.pi)  # a full turn
+    rot = path[:, :3, :3]
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(24, 3, 3))
+
+
+def test_spiral_stays_near_the_mean_pose_and_looks_at_the_focus() -> None:
+    cams = forward_facing()
+    mean = mean_pose(cams)
+    depth = focus_depth(1.0, 10.0)
+    path = spiral_path(cams, 40, depth)
+    local = (path[:, :3, 3] - mean[:3, 3]) @ mean[:3, :3]
+    spread = ((cams[:, :3, 3] - mean[:3, 3]) @ mean[:3, :3]).abs().max(0).values
+    assert bool((local.abs() <= spread + 1e-9).all())  # within the cameras' own spread, axis by axis
+    focus = mean[:3, 3] - depth * mean[:3, 2]
+    to_focus = focus - path[:, :3, 3]
+    torch.testing.assert_close(-path[:, :3, 2], to_focus / to_focus.norm(dim=-1, keepdim=True))
+    angle = torch.rad2deg(torch.acos((-path[:, :3, 2] @ -mean[:3, 2]).clamp(-1, 1)))
+    assert float(angle.max()) < 10.0  # they all look roughly the mean way
+
+
+def test_mean_pose_of_identical_cameras_is_that_camera() -> None:
+    cam = ring(3)[1]
+    torch.testing.assert_close(mean_pose(cam.expand(4, 4, 4)), cam)
+
+
+def test_focus_depth_is_llffs_harmonic_blend() -> None:
+    assert focus_depth(2.0, 8.0) == pytest.approx(1.0 / (0.25 / 2.0 + 0.75 / 8.0))
+
+
+def test_choose_path() -> None:
+    assert direction_spread_deg(ring(8)) == pytest.approx(180.0 - 2 * math.degrees(math.atan2(2.0, 4.0)))
+    assert direction_spread_deg(ring(8, height=4.0 * math.tan(math.radians(65)))) == pytest.approx(50.0)
+    assert choose_path(ring(8, height=4.0 * math.tan(math.radians(65)))) == "orbit"  # looking down steeply
+    assert choose_path(ring(8)) == "orbit"
+    assert choose_path(ring(6, turn=0.4)) == "orbit"  # a part of a ring still spreads widely
+    assert direction_spread_deg(forward_facing()) < 10.0
+    assert choose_path(forward_facing()) == "spiral"

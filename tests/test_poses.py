@@ -1,0 +1,190 @@
+"""``nerfmeta poses`` and ``nerfmeta fit PHOTOS`` on small generated textured scenes (seconds each).
+
+What must hold: the poses match the true ones after a similarity (rotation < 1 degree, centres
+within 1 % of the scene); the written scene loads through the registry; the photo folder is
+never written to; bad input is one line, exit 2, and nothing is left half-written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("pycolmap")
+
+import sfm_scenes  # noqa: E402
+
+from nerfmeta.cli import main  # noqa: E402
+from nerfmeta.data.registry import load_scene  # noqa: E402
+from nerfmeta.data.sfm import SfmConfig, cached_poses, compute_poses, prepare_photo  # noqa: E402
+from nerfmeta.errors import SceneError  # noqa: E402
+
+HEIGHT, WIDTH, VIEWS, TURN = 192, 256, 10, 0.4
+SCENE_SIZE = 8.0  # the ground square's side
+
+
+def _folder_digest(folder: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
+
+
+@pytest.fixture(scope="module")
+def arc(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray]:
+    """A folder of 10 photos of the textured cube over 144 degrees of a ring, and their true poses."""
+    poses = sfm_scenes.ring_poses(VIEWS, turn=TURN)
+    folder = tmp_path_factory.mktemp("arc") / "photos"
+    sfm_scenes.write_photos(folder, sfm_scenes.render(poses, 0.8 * WIDTH, HEIGHT, WIDTH))
+    return folder, poses
+
+
+@pytest.fixture(scope="module")
+def solved(arc: tuple[Path, np.ndarray], tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object, dict]:
+    folder, _ = arc
+    before = _folder_digest(folder)
+    out = tmp_path_factory.mktemp("solved") / "scene"
+    result = compute_poses(folder, out, SfmConfig(threads=1))
+    assert _folder_digest(folder) == before  # the photos were only read
+    return out, result, json.loads((out / "transforms.json").read_text())
+
+
+def test_poses_match_the_true_ones(arc, solved) -> None:
+    _, true = arc
+    out, result, doc = solved
+    assert len(result.registered) == VIEWS and not result.unregistered
+    estimated = np.array([f["transform_matrix"] for f in doc["frames"]])
+    rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
+    assert rotation_deg.max() < 1.0
+    assert centre.max() < 0.01 * SCENE_SIZE
+    scale = sfm_scenes.umeyama(estimated[:, :3, 3], true[:, :3, 3])[0]  # SfM's unit is arbitrary
+    assert doc["camera_model"] == "PINHOLE" and scale * doc["near"] < 3.0 < 6.0 < scale * doc["far"]  # cameras 4.5 from the cube
+    assert abs(doc["fl_x"] / doc["w"] - 0.8) < 0.02  # the focal length found is the one rendered with
+
+
+def test_written_scene_loads_through_the_registry(solved) -> None:
+    out, result, doc = solved
+    scene = load_scene(out, normalize=False)
+    assert scene.format == "nerfstudio" and scene.images.shape[0] == VIEWS
+    assert (scene.height, scene.width) == (doc["h"], doc["w"])
+    assert sorted(p.name for p in (out / "images").iterdir()) == sorted(result.registered)
+    report = json.loads((out / "sfm.json").read_text())
+    assert report["registered"] == list(result.registered) and report["config"]["max_side"] == 1600
+
+
+def test_out_that_is_not_ours_is_refused(arc, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, _ = arc
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert main(["poses", str(folder), "--out", str(out), "--overwrite"]) == 2
+    assert "not a poses run folder" in capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "keep me" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert main(["poses", str(folder), "--out", str(folder)]) == 2  # never into the photo folder itself
+
+
+def _fails(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    return err[-1]
+
+
+def test_one_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "one"
+    sfm_scenes.write_photos(folder, np.zeros((1, 8, 8, 3), np.uint8))
+    line = _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
+    assert "1 photo(s) (view_000.png)" in line and "at least 3" in line
+    assert not (tmp_path / "s").exists()
+
+
+def test_corrupt_photo_is_named(arc, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "bad"
+    folder.mkdir()
+    for p in sorted(arc[0].iterdir())[:4]:
+        (folder / p.name).write_bytes(p.read_bytes())
+    (folder / "view_002.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    line = _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
+    assert "view_002.png" in line and "not a readable" in line
+    assert not (tmp_path / "s").exists()
+
+
+def test_mixed_sizes_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "mixed"
+    sfm_scenes.write_photos(folder, np.zeros((3, 8, 12, 3), np.uint8))
+    Image.fromarray(np.zeros((8, 10, 3), np.uint8)).save(folder / "view_009.png")
+    line = _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
+    assert "view_009.png: is 10x8 but view_000.png is 12x8" in line
+    Image.fromarray(np.zeros((12, 8, 3), np.uint8)).save(folder / "view_009.png")
+    assert "portrait and landscape mixed" in _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
+    assert not (tmp_path / "s").exists()
+
+
+def test_photos_with_no_overlap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "noise"
+    rng = np.random.default_rng(0)
+    sfm_scenes.write_photos(folder, rng.integers(0, 256, (4, 96, 96, 3), dtype=np.uint8))
+    line = _fails(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1"], capsys)
+    assert "found no two photos that overlap" in line
+    assert not (tmp_path / "s").exists() and not any(p.name.startswith(".s.") for p in tmp_path.iterdir())
+
+
+def test_unregistered_photos_are_named(arc, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "some"
+    folder.mkdir()
+    for p in arc[0].iterdir():
+        (folder / p.name).write_bytes(p.read_bytes())
+    Image.fromarray(np.random.default_rng(1).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / "zz_noise.png")
+    line = _fails(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1"], capsys)
+    assert "1 of 11 photos did not register: zz_noise.png" in line and "--min-registered 0.9" in line
+    assert not (tmp_path / "s").exists()
+    assert main(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1", "--min-registered", "0.9"]) == 0
+    assert "zz_noise.png" in capsys.readouterr().out
+    assert json.loads((tmp_path / "s" / "sfm.json").read_text())["unregistered"] == ["zz_noise.png"]
+    assert load_scene(tmp_path / "s").images.shape[0] == VIEWS
+
+
+def test_exif_orientation_and_downscale_on_load(tmp_path: Path) -> None:
+    shown = np.zeros((4, 6, 3), np.uint8)
+    shown[0, :] = 255  # the top row white, as a viewer shows it
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 degrees clockwise to show"
+    source = tmp_path / "rotated.png"
+    Image.fromarray(np.ascontiguousarray(np.rot90(shown, 1))).save(source, exif=exif)
+    prepare_photo(source, tmp_path / "out.png", (4, 6))
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "out.png")), shown)
+    prepare_photo(source, tmp_path / "small.png", (2, 3))
+    small = np.asarray(Image.open(tmp_path / "small.png"))
+    assert small.shape == (2, 3, 3) and small[0].min() > 100 and small[1].max() < 100
+
+
+def test_fit_on_photos_computes_the_poses_once(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    import nerfmeta.data.sfm as sfm
+
+    monkeypatch.setenv("NERFMETA_CACHE", str(tmp_path / "cache"))
+    folder, _ = arc
+    before = _folder_digest(folder)
+    run = tmp_path / "run"
+    assert main(["fit", str(folder), "--out", str(run), "--init", "scratch", "--iters", "2", "--eval-views", "1",
+                 "--renders", "0", "--downscale", "4"]) == 0
+    assert "computing them by structure from motion" in capsys.readouterr().err
+    scene = Path(json.loads((run / "config.json").read_text())["scene"])
+    assert scene.parent == tmp_path / "cache" / "poses" and (scene / "transforms.json").is_file()
+    assert _folder_digest(folder) == before
+
+    def no_second_run(*args, **kwargs):
+        raise AssertionError("structure from motion ran again")
+
+    monkeypatch.setattr(sfm, "compute_poses", no_second_run)
+    assert cached_poses(folder) == (scene, True)
+    (folder / "view_000.png").rename(folder / "view_000.renamed.png")  # other photos: another key, computed anew
+    with pytest.raises(AssertionError, match="ran again"):
+        cached_poses(folder)
+    (folder / "view_000.renamed.png").rename(folder / "view_000.png")
+
+
+def test_photo_folder_is_not_a_scene_without_pycolmap_hint(arc, tmp_path: Path) -> None:
+    with pytest.raises(SceneError, match="nerfmeta poses PHOTOS --out SCENE"):
+        load_scene(arc[0])
