@@ -67,10 +67,10 @@ def test_march_distance_round_trips_and_is_monotone():
 
 
 def test_inner_box_from_cameras():
-    centres = torch.tensor([[4.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, 3.0, 1.0]])
-    box = inner_box_from_cameras(centres, torch.zeros(3), margin=1.0)
-    assert box.centre == (0.0, 0.0, 0.0) and box.radius == 4.0
-    assert torch.equal(box.contract(centres.double()), centres.double() / 4)  # every camera inside
+    centres = torch.tensor([[4.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, 3.0, 1.0], [0.0, 0.0, 5.0]])
+    box = inner_box_from_cameras(centres, torch.zeros(3), fraction=0.5)
+    assert box.centre == (0.0, 0.0, 0.0) and box.radius == 2.0  # half the median distance, (4 + 4) / 2 / 2
+    assert inner_box_from_cameras(centres, None).centre == tuple(centres.double().mean(0).tolist())
 
 
 def test_contracted_march_exact_steps_and_lengths():
