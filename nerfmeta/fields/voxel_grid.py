@@ -280,8 +280,9 @@ class ColorMLP(nn.Module):
         first = self.linears[0]
         w_feat, w_view = first.weight.split([self.feature_dim, first.weight.shape[1] - self.feature_dim], 1)
         x = F.linear(features, w_feat) + F.linear(view, w_view, first.bias).index_select(0, ray_idx)
+        inplace = not torch.is_grad_enabled()  # test time: no copy (a tenth of a render's time)
         for lin in self.linears[1:]:
-            x = lin(F.relu(x))
+            x = lin(F.relu(x, inplace=inplace))
         return x
 
 
