@@ -185,8 +185,8 @@ class VoxelGridConfig:
     """Where the grids live: ``box`` (the scene's bounding box), ``contracted`` (an unbounded scene: an inner box around what the cameras look at at full resolution, the rest of space squashed into a shell, see :mod:`nerfmeta.render.contraction`), or ``auto``: contracted for scenes detected (or declared) unbounded, else box."""
     inner_box: tuple[float, ...] = ()
     """``contracted``: the inner box as ``(x, y, z, half_side)`` in world units (empty: from the cameras, see ``for_scene``)."""
-    render_stop_eps: float = 1e-4
-    """Test-time renders (evaluation, videos) stop each ray once its transmittance falls below this, marching and evaluating ``render_round_samples`` samples of the rays still alive at a time (0: off). Training renders never stop early."""
+    render_stop_eps: float = 0.0
+    """Test-time renders (evaluation, videos) stop each ray once its transmittance falls below this, marching and evaluating ``render_round_samples`` samples of the rays still alive at a time (0: off, the one-pass path). Training renders never stop early. Off by default: the models a few minutes' fit gives are semi-transparent, so 1e-4 cut 0-6 % of the samples and the rounds' second density lookup made renders 0-15 % slower (beer and lego fits, BENCHMARKS.md #16)."""
     render_round_samples: int = 32
     """Samples per ray marched and evaluated at a time in test-time renders (see ``render_stop_eps``)."""
     shell: float = 1.0
