@@ -74,6 +74,8 @@ from nerfmeta.fields.grid_ops import (
     trilinear_gather,
     voxel_layout,
 )
+from nerfmeta.data.scene_type import focus_point, view_directions
+from nerfmeta.render.contraction import InnerBox, inner_box_from_cameras
 from nerfmeta.render.estimators import OccupancyGrid
 from nerfmeta.render.volume import softplus_shift_for_alpha
 
@@ -192,10 +194,21 @@ class VoxelGridConfig:
     """Learning rate of the colour MLP."""
     tv_weight: float = 0.0
     """Weight of a total-variation loss on the fine density grid (0: off)."""
+    space: str = "auto"
+    """Where the grids live: ``box`` (the scene's bounding box), ``contracted`` (an unbounded scene: an inner box around what the cameras look at at full resolution, the rest of space squashed into a shell, see :mod:`nerfmeta.render.contraction`), or ``auto``: contracted for scenes detected (or declared) unbounded, else box."""
+    inner_box: tuple[float, ...] = ()
+    """``contracted``: the inner box as ``(x, y, z, half_side)`` in world units (empty: from the cameras, see ``for_scene``)."""
+    render_stop_eps: float = 0.0
+    """Test-time renders (evaluation, videos) stop each ray once its transmittance falls below this, marching and evaluating ``render_round_samples`` samples of the rays still alive at a time (0: off, the one-pass path). Training renders never stop early. Off by default: the models a few minutes' fit gives are semi-transparent, so 1e-4 cut 0-6 % of the samples and the rounds' second density lookup made renders 0-15 % slower (beer and lego fits, BENCHMARKS.md #16)."""
+    render_round_samples: int = 32
+    """Samples per ray marched and evaluated at a time in test-time renders (see ``render_stop_eps``)."""
+    shell: float = 1.0
+    """``contracted``: width of the shell holding everything outside the inner box, in inner-box half-sides (1: mip-NeRF 360's ``2 - 1/|x|``)."""
 
     def __post_init__(self) -> None:
         # JSON has no tuples: accept a list for ``growth_steps`` so a saved config loads back equal.
         object.__setattr__(self, "growth_steps", tuple(int(s) for s in self.growth_steps))
+        object.__setattr__(self, "inner_box", tuple(float(v) for v in self.inner_box))
         checks = (
             ("coarse_iters", self.coarse_iters >= 0, "use 0 (no coarse stage) or more"),
             ("coarse_num_voxels", self.coarse_num_voxels == 0 or self.coarse_num_voxels >= 8, "use 0 (auto) or at least 8"),
@@ -218,6 +231,12 @@ class VoxelGridConfig:
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
               for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
             ("tv_weight", 0.0 <= self.tv_weight < math.inf, "use 0 (off) or a positive finite weight"),
+            ("space", self.space in ("auto", "box", "contracted"), "use auto, box or contracted"),
+            ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
+             "use [] (from the cameras) or [x, y, z, half_side] with half_side > 0"),
+            ("shell", 0.0 < self.shell < math.inf, "use a positive width, e.g. 1"),
+            ("render_stop_eps", 0.0 <= self.render_stop_eps < 1.0, "use a value in [0, 1), e.g. 1e-4"),
+            ("render_round_samples", self.render_round_samples >= 1, "use 1 or more, e.g. 32"),
         )
         for name, ok, hint in checks:
             if not ok:
@@ -230,12 +249,25 @@ class VoxelGridConfig:
         16..160, about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
         views, 28^3 for 32x32, and DirectVoxGO's 160^3 from 182x182 up, e.g. 800x800). The
         coarse grid gets ``(n / 2)^3`` voxels (at least 16^3). Sizes given explicitly are kept.
+
+        ``space="auto"`` becomes ``contracted`` for an unbounded scene (``scene.scene_type``), else
+        ``box``; a contracted space without an ``inner_box`` gets one from the cameras
+        (:func:`~nerfmeta.render.contraction.inner_box_from_cameras`: centred on the point nearest
+        every optical axis, just holding every camera).
         """
         side = round(AUTO_VOXELS_PER_PIXEL * max(scene.height, scene.width))
         side = min(AUTO_MAX_SIDE, max(AUTO_MIN_SIDE, side))
         num = self.num_voxels or side**3
         coarse = self.coarse_num_voxels or max(AUTO_MIN_SIDE, round(AUTO_COARSE_RATIO * side)) ** 3
-        return replace(self, num_voxels=num, coarse_num_voxels=coarse)
+        space = self.space
+        if space == "auto":
+            space = "contracted" if scene.scene_type.kind == "unbounded" else "box"
+        inner = self.inner_box
+        if space == "contracted" and not inner:
+            centres = scene.poses[:, :3, 3]
+            box = inner_box_from_cameras(centres, focus_point(centres, view_directions(scene.poses)), shell=self.shell)
+            inner = (*box.centre, box.radius)
+        return replace(self, num_voxels=num, coarse_num_voxels=coarse, space=space, inner_box=inner)
 
 
 # ----- model --------------------------------------------------------------------------------------
@@ -261,8 +293,9 @@ class ColorMLP(nn.Module):
         first = self.linears[0]
         w_feat, w_view = first.weight.split([self.feature_dim, first.weight.shape[1] - self.feature_dim], 1)
         x = F.linear(features, w_feat) + F.linear(view, w_view, first.bias).index_select(0, ray_idx)
+        inplace = not torch.is_grad_enabled()  # test time: no copy (a tenth of a render's time)
         for lin in self.linears[1:]:
-            x = lin(F.relu(x))
+            x = lin(F.relu(x, inplace=inplace))
         return x
 
 
@@ -305,9 +338,12 @@ class VoxelGrid(RadianceModel):
             raise ConfigError("grid config: num_voxels/coarse_num_voxels 0 means auto; resolve them with "
                               "VoxelGridConfig.for_scene(scene) or set them explicitly")
         self.config = config
+        self.box = self._inner_box(config)
+        if self.box is not None:  # the grids fill the contracted cube, not the scene's box
+            bounds = torch.tensor([[-self.box.extent] * 3, [self.box.extent] * 3], device=bounds.device)
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
-        self.occupancy = OccupancyGrid(self.scene_bounds)
+        self.occupancy = OccupancyGrid(self.scene_bounds, box=self.box)
         self.level = 0
         self.fine_step0 = config.coarse_iters
         # Resolved view dependence; None ("auto") until ``decide`` measures it, the MLP on trial until then.
@@ -322,12 +358,23 @@ class VoxelGrid(RadianceModel):
         else:
             self._init_fine(self.scene_bounds.clone(), None, None)
 
+    @staticmethod
+    def _inner_box(config: VoxelGridConfig) -> InnerBox | None:
+        """The contraction of a ``contracted`` config (None: the grids live in the scene's box)."""
+        if config.space != "contracted":
+            return None
+        if not config.inner_box:
+            raise ConfigError("grid config: space=contracted needs an inner_box; resolve it with "
+                              "VoxelGridConfig.for_scene(scene) or set it as [x, y, z, half_side]")
+        x, y, z, radius = config.inner_box
+        return InnerBox((x, y, z), radius, config.shell)
+
     # ----- structure -------------------------------------------------------------------------
     def _init_coarse(self, bounds: torch.Tensor, size: tuple[int, int, int]) -> None:
         cfg = self.config
         self.stage = "coarse"
         self.bounds = bounds
-        self.occupancy = OccupancyGrid(bounds)
+        self.occupancy = OccupancyGrid(bounds, box=self.box)
         self.size, self.voxel = tuple(size), voxel_layout(bounds, cfg.coarse_num_voxels)[1]
         self.unit = self.voxel
         self.shift = softplus_shift_for_alpha(cfg.coarse_alpha_init, cfg.stepsize)
@@ -343,7 +390,7 @@ class VoxelGrid(RadianceModel):
         device = bounds.device
         self.stage = "fine"
         self.bounds = bounds
-        self.occupancy = OccupancyGrid(bounds, mask)
+        self.occupancy = OccupancyGrid(bounds, mask, box=self.box)
         _, self.unit = voxel_layout(bounds, cfg.num_voxels)
         self.size, self.voxel = voxel_layout(bounds, self._fine_num_voxels())
         self.shift = softplus_shift_for_alpha(cfg.alpha_init, cfg.stepsize)
@@ -580,7 +627,7 @@ class VoxelGrid(RadianceModel):
         pts = grid_points(self.bounds, self.size)
         alpha = self.alpha_per_step(pts.reshape(-1, 3)).view(self.size)
         occupied = alpha > cfg.bbox_thres
-        if not cfg.tighten_box or not bool(occupied.any()):
+        if not cfg.tighten_box or self.box is not None or not bool(occupied.any()):  # the contracted cube holds all space
             bounds = self.bounds.clone()
         else:
             occ_pts = pts[occupied]
@@ -616,12 +663,18 @@ class VoxelGrid(RadianceModel):
         else:
             jitter = torch.full((n,), 0.5, dtype=dtype, device=device)
         fine = self.stage == "fine"
+        stop = 0.0 if train else cfg.render_stop_eps  # test time only: training sees every sample
         samples = self.occupancy.sampling(rays.origins, rays.directions, rays.near, rays.far, step=cfg.stepsize * self.voxel,
-                                          jitter=jitter, skip_empty=fine and cfg.empty_space_skipping)
+                                          jitter=jitter, skip_empty=fine and cfg.empty_space_skipping,
+                                          sigma_fn=(lambda points, _: self.get_density(points)[0]) if stop > 0 else None,
+                                          early_stop_eps=stop, round_samples=cfg.render_round_samples)
         return SamplingPlan(samples, cfg.fast_color_thres if fine else cfg.coarse_fast_color_thres)
 
     def get_density(self, points: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
-        """Post-activated density per world unit; the embedding is the trilinear corners (indices, weights), (8, N) each."""
+        """Post-activated density per world unit (per contracted unit in a contracted space); the embedding is
+        the trilinear corners (indices, weights), (8, N) each."""
+        if self.box is not None:
+            points = self.box.contract(points)
         idx, w = corners_from_coords(grid_coords(points, self.bounds, self.size).contiguous(), self.size)
         raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
         return F.softplus(raw + self.shift) / self.unit, (idx, w)

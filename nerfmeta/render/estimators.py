@@ -21,6 +21,7 @@ from typing import Callable
 import torch
 from torch import nn
 
+from nerfmeta.render.contraction import InnerBox, from_march, inner_exit, to_march
 from nerfmeta.render.rays import clip_to_aabb
 from nerfmeta.render.volume import alpha_from_tau, packed_transmittance
 
@@ -61,8 +62,14 @@ class PackedSamples:
         return torch.addcmul(o, self.t[None], d).t()
 
 
+def march_counts(near: torch.Tensor, far: torch.Tensor, step: float) -> torch.Tensor:
+    """(n_rays,) int64 number of samples :func:`march_packed` puts every ``step`` in ``[near, far)``."""
+    counts = torch.ceil((far - near) / step).clamp_(min=0)
+    return (counts - ((counts > 0) & (near + step * (counts - 1) >= far)).to(counts.dtype)).long()  # rounding
+
+
 def march_packed(
-    near: torch.Tensor, far: torch.Tensor, step: float, jitter: torch.Tensor
+    near: torch.Tensor, far: torch.Tensor, step: float, jitter: torch.Tensor, first: int = 0, limit: int | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Samples every ``step`` from ``near`` to ``far``, packed (the packed form of ``fixed_step_samples``).
 
@@ -70,29 +77,79 @@ def march_packed(
         near, far: (n_rays,) with ``far >= near`` (equal: no samples).
         step: distance between samples.
         jitter: (n_rays,) in [0, 1): where each sample sits in its bin (0.5: the bin middle).
+        first, limit: only the samples ``first .. first + limit - 1`` of each ray (a window of the
+            march, exactly those samples of the whole one; ``limit`` None: to the end).
 
     Returns:
         ray_idx (M,) int64 non-decreasing, the ray of each sample; t (M,) distances; delta (M,)
         bin lengths (``step``, the last bin of a ray clipped at ``far``, so a ray's deltas sum
         to ``far - near``).
     """
-    counts = torch.ceil((far - near) / step).clamp_(min=0)
-    counts = (counts - ((counts > 0) & (near + step * (counts - 1) >= far)).to(counts.dtype)).long()  # rounding
-    total = int(counts.sum())
+    counts = march_counts(near, far, step)
+    window = (counts - first).clamp_(min=0)
+    if limit is not None:
+        window = window.clamp_(max=limit)
+    total = int(window.sum())
     n = near.shape[0]
-    ray_idx = torch.repeat_interleave(torch.arange(n, device=near.device), counts, output_size=total)
-    first = torch.cumsum(counts, 0) - counts
-    k = (torch.arange(total, device=near.device) - first.index_select(0, ray_idx)).to(near.dtype)
+    ray_idx = torch.repeat_interleave(torch.arange(n, device=near.device), window, output_size=total)
+    start = torch.cumsum(window, 0) - window
+    k = (torch.arange(total, device=near.device) - start.index_select(0, ray_idx)).to(near.dtype)
+    if first:
+        k += first
     t = torch.add((near + step * jitter).index_select(0, ray_idx), k, alpha=step)
     delta = torch.full_like(t, step)
-    # The last bin of each ray ends at ``far``.
-    rays = torch.nonzero(counts)[:, 0]
-    last = first.index_select(0, rays) + counts.index_select(0, rays) - 1
+    # The last bin of each ray ends at ``far`` (for the rays whose last sample is in the window).
+    rays = torch.nonzero((window > 0) & (window + first == counts))[:, 0]
+    last = start.index_select(0, rays) + window.index_select(0, rays) - 1
     last_start = near.index_select(0, rays) + step * (counts.index_select(0, rays) - 1).to(near.dtype)
     last_delta = (far.index_select(0, rays) - last_start).clamp_(min=0.0)
     delta.index_copy_(0, last, last_delta)
     t.index_copy_(0, last, last_start + last_delta * jitter.index_select(0, rays))
     return ray_idx, t, delta
+
+
+def contracted_interval(origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor,
+                        box: InnerBox) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(n_rays,) each: the inner-box exit ``t1`` and the marching interval ``[near_m, far_m]`` of :func:`contracted_march`."""
+    t1 = inner_exit(origins, directions, near, box)
+    near_m = to_march(near, t1, box.shell * box.radius)
+    far_m = t1 + box.shell * box.radius * (1.0 - 1e-6)
+    return t1, near_m, torch.maximum(far_m, near_m)
+
+
+def contracted_march(origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, box: InnerBox, step: float,
+                     jitter: torch.Tensor, first: int = 0, limit: int | None = None) -> PackedSamples:
+    """Packed samples of rays through the contracted space of ``box``, from ``near`` to (almost) infinity.
+
+    Marches every ``step * box.radius`` in the marching distance of
+    :func:`~nerfmeta.render.contraction.to_march` (world distance inside the inner box, disparity-like
+    beyond it with ``L = box.shell * box.radius``), so that samples are about ``step`` apart in the
+    contracted space everywhere: a ray crossing the shell gets about ``shell / step`` samples there
+    however far the scene goes on. Each sample's ``delta`` is the contracted-space length of its
+    interval (its two ends contracted), ``t`` its world distance. The march ends where the
+    contracted position is within ``1e-6`` of the cube's face: that is the background.
+
+    Args:
+        origins, directions: (n_rays, 3) world rays (unit directions).
+        near: (n_rays,) where each ray starts.
+        box: the inner box and shell width.
+        step: distance between samples in contracted units.
+        jitter: (n_rays,) in [0, 1).
+        first, limit: a window of each ray's samples, as in :func:`march_packed`.
+
+    Returns:
+        The samples, ``far`` being each ray's last world distance.
+    """
+    t1, near_m, far_m = contracted_interval(origins, directions, near, box)
+    scale = box.shell * box.radius
+    ray_idx, m, delta_m = march_packed(near_m, far_m, step * box.radius, jitter, first, limit)
+    t1_s = t1.index_select(0, ray_idx)
+    start = m - jitter.index_select(0, ray_idx) * delta_m
+    edges = from_march(torch.stack([start, start + delta_m]), t1_s[None], scale)  # (2, M)
+    o, d = origins.index_select(0, ray_idx), directions.index_select(0, ray_idx)
+    ends = box.contract(torch.cat([o + edges[0, :, None] * d, o + edges[1, :, None] * d]))
+    delta = torch.linalg.vector_norm(ends[len(m):] - ends[: len(m)], dim=-1)
+    return PackedSamples(ray_idx, from_march(m, t1_s, scale), delta, from_march(far_m, t1, scale))
 
 
 def early_termination_keep(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int, eps: float) -> torch.Tensor:
@@ -126,15 +183,21 @@ class OccupancyGrid(nn.Module):
     nearest corner is marked occupied. A ``(1, 1, 1)`` grid holding True means "no grid": nothing is
     skipped and nothing is looked up.
 
+    With an inner ``box`` (:class:`~nerfmeta.render.contraction.InnerBox`) the grid lives in the
+    contracted space of an unbounded scene (``aabb`` is then the contracted cube): rays are marched
+    to infinity by :func:`contracted_march`, samples are looked up at their contracted positions and
+    their ``delta`` is in contracted units.
+
     Buffers: ``binaries`` (X, Y, Z) bool, ``aabb`` (2, 3) the marched box.
     """
 
-    def __init__(self, aabb: torch.Tensor, binaries: torch.Tensor | None = None):
+    def __init__(self, aabb: torch.Tensor, binaries: torch.Tensor | None = None, box: InnerBox | None = None):
         super().__init__()
         self.register_buffer("aabb", aabb.detach().clone().float())
         if binaries is None:
             binaries = torch.ones(1, 1, 1, dtype=torch.bool, device=aabb.device)
         self.register_buffer("binaries", binaries)
+        self.box = box
 
     @property
     def size(self) -> tuple[int, int, int]:
@@ -161,6 +224,7 @@ class OccupancyGrid(nn.Module):
         sigma_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
         early_stop_eps: float = 0.0,
         alpha_thre: float = 0.0,
+        round_samples: int = 0,
     ) -> PackedSamples:
         """March the rays through ``aabb`` every ``step``, keeping only samples that can matter.
 
@@ -174,15 +238,20 @@ class OccupancyGrid(nn.Module):
                 without gradient; needed for ``early_stop_eps`` and ``alpha_thre``.
             early_stop_eps: drop samples whose transmittance in front is below this (0: off).
             alpha_thre: drop samples whose alpha is below this (0: off).
+            round_samples: with ``early_stop_eps``, march and evaluate ``round_samples`` samples of
+                every ray still alive at a time, so the density of what lies behind an opaque layer
+                is never evaluated (0: the whole march at once). The same samples are kept either way
+                (up to rounding of the transmittance at ``early_stop_eps``).
 
         Returns:
             The kept samples; ``far`` is the clipped far of every ray.
         """
-        near, far, _ = clip_to_aabb(origins, directions, near, far, self.aabb.to(origins.dtype))
-        ray_idx, t, delta = march_packed(near, far, step, jitter)
-        samples = PackedSamples(ray_idx, t, delta, far)
-        if skip_empty and self.skips and len(samples):
-            samples = samples.select(torch.nonzero(self.lookup(samples, origins, directions))[:, 0])
+        if self.box is None:
+            near, far, _ = clip_to_aabb(origins, directions, near, far, self.aabb.to(origins.dtype))
+        if sigma_fn is not None and early_stop_eps > 0.0 and round_samples > 0:
+            return self._sampling_in_rounds(origins, directions, near, far, step, jitter, skip_empty, sigma_fn,
+                                            early_stop_eps, alpha_thre, round_samples)
+        samples = self.march(origins, directions, near, far, step, jitter, skip_empty)
         if sigma_fn is not None and (early_stop_eps > 0.0 or alpha_thre > 0.0) and len(samples):
             with torch.no_grad():
                 tau = sigma_fn(samples.points(origins, directions), samples) * samples.delta
@@ -195,11 +264,74 @@ class OccupancyGrid(nn.Module):
             samples = samples.select(torch.nonzero(keep)[:, 0])
         return samples
 
+    def march(self, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, far: torch.Tensor, step: float,
+              jitter: torch.Tensor, skip_empty: bool, first: int = 0, limit: int | None = None) -> PackedSamples:
+        """The samples ``first .. first + limit - 1`` of each ray (``near``/``far`` already clipped), empty ones skipped."""
+        if self.box is not None:
+            samples = contracted_march(origins, directions, near, self.box, step, jitter, first, limit)
+        else:
+            samples = PackedSamples(*march_packed(near, far, step, jitter, first, limit), far)
+        if skip_empty and self.skips and len(samples):
+            samples = samples.select(torch.nonzero(self.lookup(samples, origins, directions))[:, 0])
+        return samples
+
+    @torch.no_grad()
+    def _sampling_in_rounds(self, origins, directions, near, far, step, jitter, skip_empty, sigma_fn, eps, alpha_thre,
+                            round_samples) -> PackedSamples:
+        """:meth:`sampling` with early termination, ``round_samples`` samples of the rays still alive at a time."""
+        n = origins.shape[0]
+        if self.box is not None:
+            _, near_m, far_m = contracted_interval(origins, directions, near, self.box)
+            counts = march_counts(near_m, far_m, step * self.box.radius)
+        else:
+            counts = march_counts(near, far, step)
+        passed = torch.zeros(n, dtype=torch.float64, device=origins.device)  # optical depth in front of the window
+        pieces: list[PackedSamples] = []
+        rays = torch.arange(n, device=origins.device)
+        first, ray_far = 0, None
+        while True:
+            rays = rays[counts.index_select(0, rays) > first]
+            if not len(rays):
+                break
+            o, d = origins.index_select(0, rays), directions.index_select(0, rays)
+            s = self.march(o, d, near.index_select(0, rays), far.index_select(0, rays), step, jitter.index_select(0, rays),
+                           skip_empty, first, round_samples)
+            first += round_samples
+            if not len(s):
+                continue
+            tau = sigma_fn(s.points(o, d), s) * s.delta
+            keep = torch.ones_like(tau, dtype=torch.bool)
+            if alpha_thre > 0.0:
+                keep &= alpha_from_tau(tau) >= alpha_thre
+                tau = torch.where(keep, tau, torch.zeros_like(tau))
+            before = passed.index_select(0, rays).index_select(0, s.ray_idx)
+            keep &= packed_transmittance(tau, s.ray_idx, len(rays)) * torch.exp(-before).to(tau.dtype) >= eps
+            passed.index_add_(0, rays, tau.double().new_zeros(len(rays)).index_add_(0, s.ray_idx, tau.double()))
+            sel = torch.nonzero(keep)[:, 0]
+            pieces.append(PackedSamples(rays.index_select(0, s.ray_idx.index_select(0, sel)), s.t.index_select(0, sel),
+                                        s.delta.index_select(0, sel), s.far))
+            rays = rays[torch.exp(-passed.index_select(0, rays)) >= eps]
+        if self.box is not None:
+            t1 = inner_exit(origins, directions, near, self.box)
+            ray_far = from_march(far_m, t1, self.box.shell * self.box.radius)
+        else:
+            ray_far = far
+        if not pieces:
+            empty = origins.new_zeros(0)
+            return PackedSamples(torch.zeros(0, dtype=torch.long, device=origins.device), empty, empty, ray_far)
+        ray_idx = torch.cat([p.ray_idx for p in pieces])
+        order = torch.sort(ray_idx, stable=True).indices
+        return PackedSamples(ray_idx.index_select(0, order), torch.cat([p.t for p in pieces]).index_select(0, order),
+                             torch.cat([p.delta for p in pieces]).index_select(0, order), ray_far)
+
     def lookup(self, samples: PackedSamples, origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
         """(M,) bool: the grid's mark at the corner nearest each sample."""
         dtype = origins.dtype
         lo = self.aabb[0].to(dtype)
         to_grid = torch.tensor([s - 1 for s in self.size], dtype=dtype, device=origins.device) / (self.aabb[1].to(dtype) - lo)
+        if self.box is not None:
+            x = ((self.box.contract(samples.points(origins, directions)) - lo) * to_grid).t()
+            return self.binaries.view(-1)[nearest_from_coords(x, self.size)]
         x = torch.addcmul(((origins - lo) * to_grid).t().contiguous().index_select(1, samples.ray_idx), samples.t[None],
                           (directions * to_grid).t().contiguous().index_select(1, samples.ray_idx))
         return self.binaries.view(-1)[nearest_from_coords(x, self.size)]
