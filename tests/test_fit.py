@@ -231,3 +231,12 @@ def test_config_of_an_older_run_with_a_retired_key_loads() -> None:
     assert RunConfig.from_json(saved).fit.iters == 7
     with pytest.raises(TypeError):  # an unknown key that was never ours is still an error
         RunConfig.from_json({"scene": "s", "fit": {"iters": 7, "no_such_key": 1}})
+
+
+def test_a_run_saved_before_scene_types_resumes_as_a_bounded_object() -> None:
+    from nerfmeta.fit.run import RunConfig
+
+    # no scene_type key: fitted in a box, so --resume must not rebuild it in NDC or a contracted space
+    assert RunConfig.from_json({"scene": "s"}).scene_type == "object"
+    assert RunConfig.from_json({"scene": "s", "scene_type": "auto"}).scene_type == "auto"
+    assert RunConfig("s").scene_type == "auto"  # new runs detect

@@ -109,6 +109,9 @@ class RunConfig:
         data["fit"] = FitConfig.from_json(data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         data["snapshot_iters"] = tuple(data.get("snapshot_iters", ()))
+        # A run saved before scene types existed was fitted as a bounded object: resuming it must not
+        # switch it to NDC or a contracted space (its checkpoint holds the bounded model).
+        data.setdefault("scene_type", "object")
         return RunConfig(**data)
 
 
