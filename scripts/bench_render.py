@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import json
 import statistics
 import sys
 import time
@@ -28,23 +27,14 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from nerfmeta.data.registry import load_scene  # noqa: E402
-from nerfmeta.fields.registry import build_model  # noqa: E402
-from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
-from nerfmeta.fit.run import RunConfig  # noqa: E402
+from nerfmeta.fit.restore import load_fitted_run  # noqa: E402
 
 
 def load_run(folder: Path):
     """The run's config, scene and trained model (on the CPU)."""
-    config = RunConfig.from_json(json.loads((folder / "config.json").read_text()))
-    if config.backbone == "grid" and "space" not in config.model:  # saved before contracted spaces existed: a box
-        config = dataclasses.replace(config, model={**config.model, "space": "box"})
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background,
-                       normalize=config.normalize, scene_type=config.scene_type)
-    model = build_model(config.backbone, config.model_config(scene), scene.bounds, seed=config.fit.seed)
-    restore_model(model, load_checkpoint(folder / CHECKPOINT_NAME))
-    return config, scene, model.eval()
+    fitted = load_fitted_run(folder, "cpu")
+    return fitted.config, fitted.scene, fitted.model
 
 
 def orbit_pose(pose: torch.Tensor, centre: torch.Tensor, up: torch.Tensor, angle: float) -> torch.Tensor:

@@ -9,8 +9,6 @@ import torch
 
 from nerfmeta.render.cameras import look_at
 from nerfmeta.render.paths import (
-    choose_path,
-    direction_spread_deg,
     focus_depth,
     look_at_centre,
     mean_pose,
@@ -89,11 +87,3 @@ def test_focus_depth_is_llffs_harmonic_blend() -> None:
     assert focus_depth(2.0, 8.0) == pytest.approx(1.0 / (0.25 / 2.0 + 0.75 / 8.0))
 
 
-def test_choose_path() -> None:
-    assert direction_spread_deg(ring(8)) == pytest.approx(180.0 - 2 * math.degrees(math.atan2(2.0, 4.0)))
-    assert direction_spread_deg(ring(8, height=4.0 * math.tan(math.radians(65)))) == pytest.approx(50.0)
-    assert choose_path(ring(8, height=4.0 * math.tan(math.radians(65)))) == "orbit"  # looking down steeply
-    assert choose_path(ring(8)) == "orbit"
-    assert choose_path(ring(6, turn=0.4)) == "orbit"  # a part of a ring still spreads widely
-    assert direction_spread_deg(forward_facing()) < 10.0
-    assert choose_path(forward_facing()) == "spiral"

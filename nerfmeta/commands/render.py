@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
+import math
 import re
 import sys
 from pathlib import Path
@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from nerfmeta.errors import ConfigError
+from nerfmeta.render.ndc import BD_FACTOR
 
 PATHS = ("auto", "orbit", "spiral", "test")
 FRAME_CHUNK = 8
@@ -86,28 +87,10 @@ def check_video_target(out: str, overwrite: bool) -> Path:
 
 def load_run(run: Path, device: str | None):
     """``(model, scene, config)`` of a fit run folder: its config, scene (as it was fitted) and checkpoint."""
-    from nerfmeta.data import load_scene
-    from nerfmeta.fields.registry import build_model
-    from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model
-    from nerfmeta.fit.run import RunConfig
-    from nerfmeta.runfolder import is_run_of
+    from nerfmeta.fit.restore import load_fitted_run
 
-    if not is_run_of(run, "fit") or not (run / CHECKPOINT_NAME).is_file():
-        raise ConfigError(f"{run}: not a 'nerfmeta fit' run folder with a {CHECKPOINT_NAME}")
-    try:
-        config = RunConfig.from_json(json.loads((run / "config.json").read_text()))
-    except (OSError, ValueError, TypeError) as err:
-        raise ConfigError(f"{run / 'config.json'}: unreadable run config ({err})") from None
-    if device is not None:
-        config = dataclasses.replace(config, device=device)
-    if config.device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"--device {config.device}: CUDA is not available on this machine (pass --device cpu)")
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize)
-    model = build_model(config.backbone, config.model_config(), scene.bounds, seed=config.fit.seed,
-                        device=torch.device(config.device))
-    restore_model(model, load_checkpoint(run / CHECKPOINT_NAME))
-    model.eval()
-    return model, scene, config
+    fitted = load_fitted_run(run, device)
+    return fitted.model, fitted.scene, fitted.config
 
 
 def path_poses(scene, path: str, frames: int) -> tuple[str, torch.Tensor]:
@@ -115,8 +98,8 @@ def path_poses(scene, path: str, frames: int) -> tuple[str, torch.Tensor]:
     from nerfmeta.render import paths
 
     train = scene.poses[scene.split_indices("train")].double()
-    if path == "auto":
-        path = paths.choose_path(train)
+    if path == "auto":  # the kind of capture decides (nerfmeta.data.scene_type)
+        path = "spiral" if scene.scene_type.kind == "forward" else "orbit"
     if path == "test":
         return path, scene.poses[scene.split_indices("test")].double()
     if path == "orbit":
@@ -124,7 +107,11 @@ def path_poses(scene, path: str, frames: int) -> tuple[str, torch.Tensor]:
             return path, paths.orbit_path(train, frames)
         except ValueError as err:
             raise ConfigError(f"--path orbit: {err}; use --path spiral") from None
-    return path, paths.spiral_path(train, frames, paths.focus_depth(scene.near, scene.far))
+    if scene.ndc is not None:  # fitted in NDC: near/far are NDC distances; the world's near plane is 1 / scale
+        depth = paths.focus_depth(1.0 / (scene.ndc.scale * BD_FACTOR), math.inf)
+    else:
+        depth = paths.focus_depth(scene.near, scene.far)
+    return path, paths.spiral_path(train, frames, depth)
 
 
 def frame_scene(scene, poses: torch.Tensor, height: int, width: int):

@@ -115,6 +115,14 @@ class RunConfig:
         return RunConfig(**data)
 
 
+def run_scene(config: RunConfig):
+    """The scene of ``config`` as its fit sees it: loaded with the run's options, then put in the fit's
+    space (a forward-facing scene in NDC, :func:`nerfmeta.fit.sampler.fit_space`)."""
+    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
+                       scene_type=config.scene_type)
+    return fit_space(scene)
+
+
 RESOLVED_KEYS = ("init_kind", "init_path", "init_sha256", "frozen_layers", "route")
 """Keys ``config.json`` records beside the :class:`RunConfig` fields (what ``init`` and ``freeze`` resolved to,
 and the classifier's routing decision of a ``--init auto`` fit, so that ``--resume`` continues the same route)."""
@@ -288,9 +296,7 @@ def fit_in_folder(
     config.model_config()  # validate the overrides before any slow work
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"--device {config.device}: CUDA is not available on this machine")
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type)
-    scene = fit_space(scene)  # a forward-facing scene is fitted in NDC
+    scene = run_scene(config)
     if not scene.splits.get("train"):
         raise ConfigError(f"{config.scene}: the scene has no training views")
     device = torch.device(config.device)

@@ -9,8 +9,9 @@ Every pose is a (4, 4) OpenGL camera-to-world matrix (x right, y up, looking alo
 - :func:`spiral_path`: LLFF's spiral around the mean pose (:func:`mean_pose`), with radii from the
   spread of the camera centres, every frame looking at a point ``focus_depth`` ahead of the mean
   pose. For forward-facing captures.
-- :func:`choose_path`: ``orbit`` when the cameras' viewing directions spread widely, ``spiral``
-  when they all look one way (a small rule; a scene-type detector can replace it).
+
+Which one a video of a scene follows by default is decided by its kind of capture
+(:mod:`nerfmeta.data.scene_type`: spiral for forward-facing, orbit otherwise).
 """
 
 from __future__ import annotations
@@ -20,12 +21,6 @@ import math
 import torch
 
 from nerfmeta.render.cameras import look_at
-
-ORBIT_SPREAD_DEG = 45.0
-"""The largest angle between two cameras' viewing directions above which the cameras are taken to
-stand around the scene (:func:`choose_path`); forward-facing captures stay well below it (LLFF's
-scenes within about 20 degrees), a ring of cameras looking down at 60 degrees is at 60."""
-
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(1e-12)
@@ -55,19 +50,6 @@ def orbit_up(poses: torch.Tensor) -> torch.Tensor:
         return up
     normal = _unit(vt[-1])
     return normal if float(normal @ up) >= 0 else -normal
-
-
-def direction_spread_deg(poses: torch.Tensor) -> float:
-    """The largest angle (degrees) between two cameras' viewing directions: small for a forward-facing
-    capture, large for cameras around the scene (180 - 2 x elevation for a ring, however steep)."""
-    dirs = viewing_directions(poses)
-    cos = (dirs @ dirs.T).clamp(-1, 1)
-    return math.degrees(float(torch.acos(cos.min())))
-
-
-def choose_path(poses: torch.Tensor, *, spread_deg: float = ORBIT_SPREAD_DEG) -> str:
-    """``orbit`` for cameras looking in from around the scene, ``spiral`` for cameras all looking one way."""
-    return "orbit" if direction_spread_deg(poses) > spread_deg else "spiral"
 
 
 def look_at_centre(poses: torch.Tensor) -> torch.Tensor:
