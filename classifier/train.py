@@ -6,7 +6,7 @@ Data use (nothing else is read):
   categories minus ``holdout_categories``), augmented (:func:`classifier.data.augment_views`);
 - **calibration and validation metrics**: the ``val`` scenes of the known categories, all their
   views, without augmentation. The unknown threshold of each score keeps ``keep_fraction`` of
-  these scenes, lowered by a margin that grows as they get fewer (``threshold_rule``); a
+  these scenes (``threshold_rule``; ``combined`` is standardised by their scores too); a
   collection with fewer scenes or views than :data:`~classifier.config.CALIBRATION_NEEDS` is
   warned about (log, ``classifier.json["calibration"]["warnings"]``, the CLI's output);
 - **held-out report**: the ``val`` scenes of the held-out categories, scored to report how well
