@@ -139,6 +139,8 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
     tensors[STATS_PREFIX + "reference_views"] = stats.reference_views
     if stats.class_scale is not None:
         tensors[STATS_PREFIX + "class_scale"] = stats.class_scale
+    if stats.score_norm is not None:
+        tensors[STATS_PREFIX + "score_norm"] = stats.score_norm
     return tensors
 
 
@@ -295,7 +297,7 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
     model.load_state_dict(state, assign=True)
     try:
         stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within", "reference_views")),
-                             class_scale=tensors.get(STATS_PREFIX + "class_scale"))
+                             class_scale=tensors.get(STATS_PREFIX + "class_scale"), score_norm=tensors.get(STATS_PREFIX + "score_norm"))
     except KeyError:
         raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within/reference_views)") from None
     dim = model.feature_dim
@@ -308,5 +310,9 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
         raise ClassifierError(f"{weights}: {STATS_PREFIX}class_scale must hold one positive value per category")
     if stats.class_scale is None and "class_mahalanobis" in meta.thresholds:
         raise ClassifierError(f"{weights}: {STATS_PREFIX}class_scale is missing but classifier.json calibrates class_mahalanobis")
+    if stats.score_norm is not None and (tuple(stats.score_norm.shape) != (4,) or not bool((stats.score_norm[1::2] > 0).all())):
+        raise ClassifierError(f"{weights}: {STATS_PREFIX}score_norm must hold a mean and a positive spread of energy and class_mahalanobis")
+    if (stats.score_norm is None or stats.class_scale is None) and "combined" in meta.thresholds:
+        raise ClassifierError(f"{weights}: {STATS_PREFIX}score_norm is missing but classifier.json calibrates combined")
     model.to(device).eval()
     return Classifier(meta, model, stats)

@@ -6,7 +6,7 @@ Data use (nothing else is read):
   categories minus ``holdout_categories``), augmented (:func:`classifier.data.augment_views`);
 - **calibration and validation metrics**: the ``val`` scenes of the known categories, all their
   views, without augmentation. The unknown threshold of each score keeps ``keep_fraction`` of
-  these scenes, lowered by a margin that grows as they get fewer (``threshold_rule``); a
+  these scenes (``threshold_rule``; ``combined`` is standardised by their scores too); a
   collection with fewer scenes or views than :data:`~classifier.config.CALIBRATION_NEEDS` is
   warned about (log, ``classifier.json["calibration"]["warnings"]``, the CLI's output);
 - **held-out report**: the ``val`` scenes of the held-out categories, scored to report how well
@@ -44,9 +44,11 @@ from classifier.plots import plot_training_curve
 from classifier.predict import (
     FeatureStats,
     auroc,
+    combined_score,
     calibrate_threshold,
     fit_class_scale,
     fit_feature_stats,
+    fit_score_norm,
     leave_one_out_class_scores,
     scene_distances,
     select_scale_prior,
@@ -257,9 +259,47 @@ def fit_network(
 
 
 def score_table(outputs: list[tuple[torch.Tensor, torch.Tensor]], stats: FeatureStats) -> dict[str, torch.Tensor]:
-    """Score name -> (n_scenes,) scores of each scene."""
+    """Score name -> (n_scenes,) scores of each scene (the scores ``stats`` can compute)."""
     rows = [scene_scores(z, f, stats) for f, z in outputs]
-    return {name: torch.tensor([r[name] for r in rows], dtype=torch.float64) for name in SCORES}
+    return {name: torch.tensor([r[name] for r in rows], dtype=torch.float64) for name in SCORES if all(name in r for r in rows)}
+
+
+@dataclass(frozen=True)
+class CalibrationInputs:
+    """Everything calibration reads from the network, so a rule can be re-run without it (``scripts/bench_classifier.py``).
+
+    Attributes:
+        train_features: (n_views, dim) features of the training views the statistics use (not augmented).
+        train_logits: (n_views, n_classes) their logits.
+        train_labels: (n_views,) class of each view.
+        train_scene_index: (n_views,) training scene of each view.
+        val: per known validation scene, (features (n_views, dim), logits (n_views, n_classes)).
+        val_labels: (n_val,) class of each known validation scene.
+        holdout_val: per held-out validation scene, (features, logits).
+    """
+
+    train_features: torch.Tensor
+    train_logits: torch.Tensor
+    train_labels: torch.Tensor
+    train_scene_index: torch.Tensor
+    val: list[tuple[torch.Tensor, torch.Tensor]]
+    val_labels: torch.Tensor
+    holdout_val: list[tuple[torch.Tensor, torch.Tensor]]
+
+
+@torch.no_grad()
+def calibration_inputs(
+    model: SceneNet, train: ViewSet, val: ViewSet, holdout_val: ViewSet, config: TrainConfig, categories: tuple[str, ...]
+) -> CalibrationInputs:
+    """The network's outputs on the first ``config.stats_views`` views of each training scene and on every view of
+    the validation scenes (no augmentation)."""
+    meta = _meta(config, categories)
+    sample = train.subset(config.stats_views)
+    features, logits = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta))
+    val_out = scene_outputs(model, val, meta)
+    labels = torch.tensor([int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))], dtype=torch.long)
+    held = scene_outputs(model, holdout_val, meta) if len(holdout_val.scenes) else []
+    return CalibrationInputs(features, logits, sample.labels.clone(), sample.scene_index.clone(), val_out, labels, held)
 
 
 def calibrate(
@@ -270,51 +310,56 @@ def calibrate(
     config: TrainConfig,
     categories: tuple[str, ...],
 ) -> tuple[FeatureStats, dict[str, float], dict[str, Any]]:
+    """:func:`calibrate_inputs` of the network's :func:`calibration_inputs`."""
+    return calibrate_inputs(calibration_inputs(model, train, val, holdout_val, config, categories), config, len(categories))
+
+
+def calibrate_inputs(
+    data: CalibrationInputs, config: TrainConfig, n_classes: int
+) -> tuple[FeatureStats, dict[str, float], dict[str, Any]]:
     """Feature statistics of the training scenes, a threshold per score, and validation metrics.
 
-    The statistics use the first ``config.stats_views`` views of each training scene, not augmented.
     The class scale of ``class_mahalanobis`` comes from the known validation scenes, shrunk towards
     the pooled scale by ``config.scale_prior_scenes`` (or the prior of
     :data:`~classifier.config.SCALE_PRIOR_GRID` with the best leave-one-out likelihood,
     :func:`~classifier.predict.select_scale_prior`); their own ``class_mahalanobis`` scores, for its
     threshold and validation metrics, are leave-one-out scores
     (:func:`~classifier.predict.leave_one_out_class_scores`), so they are as unbiased as a new scene's.
+    The threshold of each score is drawn by ``config.threshold_rule`` (:func:`threshold_for_rule`).
 
     Returns:
-        stats, thresholds (score -> :func:`~classifier.predict.calibrate_threshold` of ``val`` with
-        ``config.keep_fraction`` and ``config.threshold_rule``), metrics (``metrics["calibration"]``
-        says which prior and rule were used).
+        stats, thresholds (score -> threshold), metrics (``metrics["calibration"]`` says which prior
+        and rule were used).
     """
-    meta = _meta(config, categories)
-    sample = train.subset(config.stats_views)
-    train_features, _ = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta))
-    stats = fit_feature_stats(train_features, sample.labels, sample.scene_index, len(categories), config.covariance_shrinkage)
-    val_out = scene_outputs(model, val, meta)
-    labels = [int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))]
-    distances = torch.stack([scene_distances(f, stats) for f, _ in val_out])
-    y = torch.tensor(labels)
+    stats = fit_feature_stats(data.train_features, data.train_labels, data.train_scene_index, n_classes,
+                              config.covariance_shrinkage)
+    y = data.val_labels
+    labels = y.tolist()
+    distances = torch.stack([scene_distances(f, stats) for f, _ in data.val])
     prior, chosen_by = config.scale_prior_scenes, "given"
     if prior is None:
         prior, chosen_by = SCALE_PRIOR_GRID[0], "smallest of the grid (one validation scene: nothing to choose on)"
         if len(labels) >= 2:
-            prior = select_scale_prior(distances, y, len(categories), SCALE_PRIOR_GRID)
+            prior = select_scale_prior(distances, y, n_classes, SCALE_PRIOR_GRID)
             chosen_by = "leave-one-out likelihood of the validation distances"
-    stats = replace(stats, class_scale=fit_class_scale(distances, y, len(categories), prior).float())
-    known = score_table(val_out, stats)
+    stats = replace(stats, class_scale=fit_class_scale(distances, y, n_classes, prior).float())
+    known = score_table(data.val, stats)
     if len(labels) >= 2:
-        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, len(categories), prior)
-    thresholds = {name: calibrate_threshold(known[name], config.keep_fraction, config.threshold_rule) for name in SCORES}
-    correct = torch.tensor([int(scene_probabilities(z).argmax()) == y for (_, z), y in zip(val_out, labels)])
+        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, n_classes, prior)
+    stats = replace(stats, score_norm=fit_score_norm(known["energy"], known["class_mahalanobis"]).float())
+    known["combined"] = combined_score(known["energy"], known["class_mahalanobis"], stats.score_norm)
+    thresholds, rule_notes = threshold_for_rule(data, stats, known, distances, config, prior)
+    correct = torch.tensor([int(scene_probabilities(z).argmax()) == c for (_, z), c in zip(data.val, labels)])
     metrics: dict[str, Any] = {
-        "val_scenes": len(val.scenes),
-        "val_views": len(val),
+        "val_scenes": len(labels),
+        "val_views": sum(int(f.shape[0]) for f, _ in data.val),
         "val_scene_accuracy": float(correct.float().mean()),
         "calibration": {"threshold_rule": config.threshold_rule, "keep_fraction": config.keep_fraction,
-                        "scale_prior_scenes": prior, "scale_prior_chosen_by": chosen_by},
+                        "scale_prior_scenes": prior, "scale_prior_chosen_by": chosen_by, **rule_notes},
         "scores": {},
     }
-    held = score_table(scene_outputs(model, holdout_val, meta), stats) if len(holdout_val.scenes) else None
-    metrics["holdout_val_scenes"] = len(holdout_val.scenes)
+    held = score_table(data.holdout_val, stats) if data.holdout_val else None
+    metrics["holdout_val_scenes"] = len(data.holdout_val)
     for name in SCORES:
         flagged = known[name] < thresholds[name]
         entry = {
@@ -327,6 +372,23 @@ def calibrate(
             entry["holdout_val_auroc"] = auroc(known[name], held[name])
         metrics["scores"][name] = entry
     return stats, thresholds, metrics
+
+
+def threshold_for_rule(
+    data: CalibrationInputs, stats: FeatureStats, known: dict[str, torch.Tensor], distances: torch.Tensor,
+    config: TrainConfig, prior: float,
+) -> tuple[dict[str, float], dict[str, Any]]:
+    """Score name -> threshold by ``config.threshold_rule``, and notes for ``classifier.json["calibration"]``.
+
+    Args:
+        data: the network's outputs.
+        stats: the fitted statistics, class scale included.
+        known: score name -> (n_val,) scores of the known validation scenes (``class_mahalanobis`` leave-one-out).
+        distances: (n_val, n_classes) their distances to each class mean.
+        config: the recipe.
+        prior: the class scale's prior, in scenes.
+    """
+    return {name: calibrate_threshold(known[name], config.keep_fraction, config.threshold_rule) for name in SCORES}, {}
 
 
 def calibration_warnings(
@@ -376,7 +438,7 @@ def select_score(requested: str, metrics: dict[str, Any], min_holdout_scenes: in
     if any(v is None for v in aurocs.values()) or held < max(1, min_holdout_scenes):
         return DEFAULT_SCORE, (f"default ({held} held-out validation scenes to compare the scores on; "
                                f"auto compares them from {max(1, min_holdout_scenes)})")
-    order = [DEFAULT_SCORE] + [s for s in SCORES if s != DEFAULT_SCORE]
+    order = [s for s in dict.fromkeys((DEFAULT_SCORE, *SCORES)) if s in aurocs]
     best = max(order, key=lambda s: (aurocs[s], -order.index(s)))
     return best, "best AUROC on the held-out categories' validation scenes"
 

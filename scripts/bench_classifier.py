@@ -114,11 +114,7 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
 
     ``classifier`` is a classifier folder or a loaded :class:`classifier.store.Classifier`.
     """
-    import torch
-
-    from classifier.config import SCORES
     from classifier.inputs import read_scene_views
-    from classifier.predict import auroc, decide, scene_scores
     from classifier.store import load_classifier, model_inputs, view_outputs
     from nerfmeta.collection.generate import load_collection
 
@@ -129,36 +125,8 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     for record in (coll.by_split(split) if split else coll.scenes):
         views = read_scene_views(coll.scene_path(record), size=meta.input_size, background=meta.background)
         features, logits = view_outputs(clf.model, model_inputs(views, meta))
-        pred = decide(logits, features, meta.categories, meta.score, meta.threshold, clf.stats)
-        rows.append({"scene": record.name, "category": record.category, "known": record.category in meta.categories,
-                     "predicted": pred.category, "unknown": pred.unknown, "views": pred.views,
-                     "scores": scene_scores(logits, features, clf.stats)})
-    known = [r for r in rows if r["known"]]
-    held = [r for r in rows if not r["known"]]
-    out = {
-        "score": meta.score,
-        "known_scenes": len(known),
-        "holdout_scenes": len(held),
-        "views_per_scene": sorted({r["views"] for r in rows}),
-        "known_correct_and_known": sum(r["predicted"] == r["category"] and not r["unknown"] for r in known) / len(known),
-        "known_accuracy": sum(r["predicted"] == r["category"] for r in known) / len(known),
-        "false_unknown_rate": sum(r["unknown"] for r in known) / len(known),
-        "holdout_detection_rate": sum(r["unknown"] for r in held) / max(1, len(held)),
-        "per_score": {},
-        "errors": [f"{r['scene']}: {r['predicted']}{' (unknown)' if r['unknown'] else ''}" for r in known
-                   if r["predicted"] != r["category"] or r["unknown"]]
-        + [f"{r['scene']}: {r['predicted']} (not flagged)" for r in held if not r["unknown"]],
-    }
-    for name in SCORES:
-        k = torch.tensor([r["scores"][name] for r in known], dtype=torch.float64)
-        h = torch.tensor([r["scores"][name] for r in held], dtype=torch.float64)
-        t = meta.thresholds[name]
-        out["per_score"][name] = {
-            "test_auroc": auroc(k, h) if len(held) else None,
-            "test_detection_rate": float((h < t).double().mean()) if len(held) else None,
-            "test_false_unknown_rate": float((k < t).double().mean()),
-        }
-    return out
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+    return judge(rows, meta.categories, meta.score, meta.thresholds, clf.stats)
 
 
 def _median(values: list[float]) -> float:
@@ -298,10 +266,100 @@ def before_issue14_scores(distances, labels, class_scale):
     return class_mahalanobis_from_distances(d, scales)
 
 
-def recalibrate(classifier_dir: Path, collection: Path, before: bool):
-    """The network of ``classifier_dir`` calibrated again on its training collection (nothing written).
+def recipe_config(classifier_dir: Path, **changes):
+    """The :class:`~classifier.config.TrainConfig` fields calibration reads, from ``classifier.json``'s recipe, with ``changes``."""
+    from classifier.config import TrainConfig
 
-    ``before=False``: exactly as ``classifier train`` does now (:func:`classifier.train.calibrate`).
+    recipe = json.loads((classifier_dir / "classifier.json").read_text())["recipe"]
+    fields = dict(
+        arch=recipe["arch"], stem=recipe["stem"], input_size=recipe["input_size"], background=tuple(recipe["background"]),
+        mean=tuple(recipe["mean"]), std=tuple(recipe["std"]), keep_fraction=recipe["keep_fraction"],
+        stats_views=recipe["stats_views"], covariance_shrinkage=recipe["covariance_shrinkage"], score=recipe["score"],
+        holdout_categories=tuple(recipe["holdout_categories"]))
+    return TrainConfig(**{**fields, **changes})
+
+
+def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
+    """The network's outputs calibration and judging need, computed once and kept in ``classifier_dir``.
+
+    Returns ``{"categories", "inputs": CalibrationInputs (training collection), "fresh": [{"scene", "category",
+    "features", "logits"}, ...] (every scene of ``fresh``)}``; any calibration rule can then be re-run on them
+    without the network (:func:`recalibrate`).
+    """
+    import torch
+
+    from classifier.data import load_view_set
+    from classifier.inputs import read_scene_views
+    from classifier.store import load_classifier, model_inputs, view_outputs
+    from classifier.train import CalibrationInputs, calibration_inputs, plan_splits
+    from nerfmeta.collection.generate import load_collection
+
+    cache = classifier_dir / f"outputs_{fresh.name}.pt"
+    if cache.is_file():
+        saved = torch.load(cache, weights_only=True)
+        return {**saved, "inputs": CalibrationInputs(**saved["inputs"])}
+    clf = load_classifier(classifier_dir)
+    config = recipe_config(classifier_dir)
+    coll = load_collection(collection)
+    splits = plan_splits(coll, config.holdout_categories)
+    views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
+             for part in (splits.train, splits.val, splits.holdout_val)]
+    inputs = calibration_inputs(clf.model, *views, config, splits.categories)
+    rows = []
+    fresh_coll = load_collection(fresh)
+    for record in fresh_coll.scenes:
+        v = read_scene_views(fresh_coll.scene_path(record), size=clf.meta.input_size, background=clf.meta.background)
+        features, logits = view_outputs(clf.model, model_inputs(v, clf.meta))
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+    saved = {"categories": list(splits.categories), "inputs": dict(vars(inputs)), "fresh": rows}
+    tmp = cache.with_suffix(".tmp")
+    torch.save(saved, tmp)
+    os.replace(tmp, cache)
+    return {**saved, "inputs": inputs}
+
+
+def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds: dict, stats) -> dict:
+    """:func:`evaluate`'s figures from cached scene outputs (``rows`` of :func:`cached_outputs`)."""
+    import torch
+
+    from classifier.config import SCORES
+    from classifier.predict import auroc, decide, scene_scores
+
+    out_rows = []
+    for r in rows:
+        pred = decide(r["logits"], r["features"], categories, score, thresholds[score], stats)
+        out_rows.append({"scene": r["scene"], "category": r["category"], "known": r["category"] in categories,
+                         "predicted": pred.category, "unknown": pred.unknown, "views": pred.views,
+                         "scores": scene_scores(r["logits"], r["features"], stats)})
+    known = [r for r in out_rows if r["known"]]
+    held = [r for r in out_rows if not r["known"]]
+    out = {
+        "score": score, "known_scenes": len(known), "holdout_scenes": len(held),
+        "views_per_scene": sorted({r["views"] for r in out_rows}),
+        "known_correct_and_known": sum(r["predicted"] == r["category"] and not r["unknown"] for r in known) / len(known),
+        "known_accuracy": sum(r["predicted"] == r["category"] for r in known) / len(known),
+        "false_unknown_rate": sum(r["unknown"] for r in known) / len(known),
+        "holdout_detection_rate": sum(r["unknown"] for r in held) / max(1, len(held)),
+        "thresholds": dict(thresholds), "per_score": {},
+        "errors": [f"{r['scene']}: {r['predicted']}{' (unknown)' if r['unknown'] else ''}" for r in known
+                   if r["predicted"] != r["category"] or r["unknown"]]
+        + [f"{r['scene']}: {r['predicted']} (not flagged)" for r in held if not r["unknown"]],
+    }
+    for name in SCORES:
+        k = torch.tensor([r["scores"][name] for r in known], dtype=torch.float64)
+        h = torch.tensor([r["scores"][name] for r in held], dtype=torch.float64)
+        t = thresholds[name]
+        out["per_score"][name] = {
+            "test_auroc": auroc(k, h) if len(held) else None,
+            "test_detection_rate": float((h < t).double().mean()) if len(held) else None,
+            "test_false_unknown_rate": float((k < t).double().mean()),
+        }
+    return out
+
+
+def recalibrate(cached: dict, config, before: bool = False) -> dict:
+    """The cached network outputs calibrated by ``config`` (as ``classifier train`` would) and judged on the fresh scenes.
+
     ``before=True``: as before issue 14: plain quantile threshold, unshrunk per-class scale, the old
     leave-one-out scores (:func:`before_issue14_scores`) and ``auto`` on any number of held-out scenes.
     """
@@ -309,36 +367,25 @@ def recalibrate(classifier_dir: Path, collection: Path, before: bool):
 
     import torch
 
-    from classifier.config import CALIBRATION_NEEDS, TrainConfig
-    from classifier.data import load_view_set
+    from classifier.config import CALIBRATION_NEEDS
     from classifier.predict import calibrate_threshold, scene_distances
-    from classifier.store import Classifier, load_classifier
-    from classifier.train import calibrate, plan_splits, scene_outputs, select_score
-    from nerfmeta.collection.generate import load_collection
+    from classifier.train import calibrate_inputs, select_score
 
-    clf = load_classifier(classifier_dir)
-    recipe = json.loads((classifier_dir / "classifier.json").read_text())["recipe"]
-    config = TrainConfig(
-        arch=recipe["arch"], stem=recipe["stem"], input_size=recipe["input_size"], background=tuple(recipe["background"]),
-        mean=tuple(recipe["mean"]), std=tuple(recipe["std"]), keep_fraction=recipe["keep_fraction"],
-        stats_views=recipe["stats_views"], covariance_shrinkage=recipe["covariance_shrinkage"], score=recipe["score"],
-        holdout_categories=tuple(recipe["holdout_categories"]),
-        **({"threshold_rule": "quantile", "scale_prior_scenes": 0.0} if before else {}))
-    coll = load_collection(collection)
-    splits = plan_splits(coll, config.holdout_categories)
-    views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
-             for part in (splits.train, splits.val, splits.holdout_val)]
-    stats, thresholds, metrics = calibrate(clf.model, *views, config, splits.categories)
     if before:
-        meta = replace(clf.meta, categories=splits.categories)
-        outputs = scene_outputs(clf.model, views[1], meta)
-        labels = torch.tensor([int(views[1].labels[views[1].scene_views(k)[0]]) for k in range(len(outputs))])
-        distances = torch.stack([scene_distances(f, stats) for f, _ in outputs])
-        thresholds["class_mahalanobis"] = calibrate_threshold(before_issue14_scores(distances, labels, stats.class_scale),
-                                                              config.keep_fraction)
+        config = replace(config, threshold_rule="quantile", scale_prior_scenes=0.0)
+    categories = tuple(cached["categories"])
+    inputs = cached["inputs"]
+    stats, thresholds, metrics = calibrate_inputs(inputs, config, len(categories))
+    if before:
+        distances = torch.stack([scene_distances(f, stats) for f, _ in inputs.val])
+        thresholds["class_mahalanobis"] = calibrate_threshold(
+            before_issue14_scores(distances, inputs.val_labels, stats.class_scale), config.keep_fraction)
+    if before:  # the scores that existed then
+        metrics["scores"].pop("combined", None)
     score, _ = select_score(config.score, metrics, 0 if before else CALIBRATION_NEEDS.holdout_val_scenes)
-    meta = replace(clf.meta, score=score, threshold=thresholds[score], thresholds=thresholds)
-    return Classifier(meta, clf.model, stats)
+    result = judge(cached["fresh"], categories, score, thresholds, stats)
+    result["calibration"] = metrics["calibration"]
+    return result
 
 
 def fresh_section_text(runs: list[dict], heading: str, command: str, train_args: list[str], fresh_args: list[str]) -> str:
@@ -485,9 +532,11 @@ def fresh_benchmark(collection: Path, work: Path, args: argparse.Namespace, trai
     seeds = [int(v) for v in args.train_seeds.split(",") if v]
     with ThreadPoolExecutor(max(1, args.parallel)) as pool:
         runs = list(pool.map(lambda sd: train_run(collection, work, sd, args), seeds))
-    for r in runs:
-        r.update(result=evaluate(fresh, r["out"], split=None), doc=json.loads((r["out"] / "classifier.json").read_text()),
-                 old=evaluate(fresh, recalibrate(r["out"], collection, before=True), split=None))
+    for r in runs:  # the network as trained, calibrated by the current code and as before issue 14
+        cached = cached_outputs(r["out"], collection, fresh)
+        config = recipe_config(r["out"])
+        r.update(result=recalibrate(cached, config), doc=json.loads((r["out"] / "classifier.json").read_text()),
+                 old=recalibrate(cached, config, before=True))
     seed = int(json.loads((collection / "collection.json").read_text())["config"]["seed"])
     heading = f"## Classifier on fresh scenes, {args.scenes_per_category} scenes per category"
     command = (f"nerfmeta classifier train COLLECTION --out DIR --holdout-categories {args.holdout} --threads {args.threads} "

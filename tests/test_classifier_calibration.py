@@ -3,23 +3,27 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
-from classifier.config import CALIBRATION_NEEDS, SCALE_PRIOR_GRID, CalibrationNeeds, TrainConfig
+from classifier.config import CALIBRATION_NEEDS, DEFAULT_SCORE, SCALE_PRIOR_GRID, CalibrationNeeds, TrainConfig
 from classifier.predict import (
     calibrate_threshold,
     class_mahalanobis_from_distances,
+    combined_score,
     fit_class_scale,
+    fit_score_norm,
     leave_one_out_class_scores,
     leave_one_out_scales,
     scale_prior_loss,
+    scene_scores,
     select_scale_prior,
     student_t_cdf,
     student_t_quantile,
 )
-from classifier.train import calibration_warnings, select_score
+from classifier.train import CalibrationInputs, calibrate_inputs, calibration_warnings, select_score
 from nerfmeta.errors import ConfigError
 
 T_99_1DOF = 31.820515953773935  # scipy.stats.t.ppf(0.99, 1)
@@ -142,7 +146,7 @@ def test_auto_score_needs_enough_held_out_scenes():
                "scores": {"msp": {"holdout_val_auroc": 0.99}, "energy": {"holdout_val_auroc": 0.5},
                           "mahalanobis": {"holdout_val_auroc": 0.5}, "class_mahalanobis": {"holdout_val_auroc": 0.6}}}
     score, why = select_score("auto", metrics)
-    assert score == "class_mahalanobis" and "held-out validation scenes" in why
+    assert score == DEFAULT_SCORE and "held-out validation scenes" in why
     assert select_score("auto", metrics, min_holdout_scenes=0)[0] == "msp"
     assert select_score("auto", {**metrics, "holdout_val_scenes": 8})[0] == "msp"
 
@@ -154,3 +158,68 @@ def test_config_refuses_bad_calibration_values():
     with pytest.raises(ConfigError, match="--scale-prior-scenes"):
         TrainConfig(scale_prior_scenes=-1.0).validate()
     TrainConfig(scale_prior_scenes=0.0).validate()
+
+
+def test_combined_score_by_hand():
+    norm = fit_score_norm(torch.tensor([1.0, 3.0]), torch.tensor([-1.0, 0.0, ]))
+    assert norm.tolist() == pytest.approx([2.0, math.sqrt(2.0), -0.5, math.sqrt(0.5)])
+    value = combined_score(torch.tensor(4.0), torch.tensor(0.5), norm)
+    assert float(value) == pytest.approx(2.0 / math.sqrt(2.0) + 1.0 / math.sqrt(0.5))
+    one = fit_score_norm(torch.tensor([5.0]), torch.tensor([2.0]))  # one scene: no spread, unit scale
+    assert one.tolist() == [5.0, 1.0, 2.0, 1.0]
+    with pytest.raises(ValueError):
+        fit_score_norm(torch.tensor([1.0]), torch.tensor([1.0, 2.0]))
+
+
+def _synthetic_scenes(centres: torch.Tensor, n_scenes: int, n_views: int, generator: torch.Generator):
+    """Per scene of each centre: (features (n_views, dim), logits (n_views, n_known)), and the centre of each scene.
+
+    A scene's mean lies at its centre plus N(0, 1) noise, its views around the mean with N(0, 0.5^2) noise; the
+    logits are ``-|f - known centre|^2 / 8`` (a classifier that learnt the three known centres)."""
+    known = centres[:3]
+    scenes, owners = [], []
+    for c, centre in enumerate(centres):
+        for _ in range(n_scenes):
+            mean = centre + torch.randn(centre.shape, generator=generator)
+            f = mean + 0.5 * torch.randn(n_views, centre.numel(), generator=generator)
+            scenes.append((f, -((f[:, None, :] - known[None]) ** 2).sum(-1) / 8.0))
+            owners.append(c)
+    return scenes, owners
+
+
+def test_default_rule_flags_a_nearby_unknown_cluster_and_keeps_fresh_known_scenes():
+    """Three known Gaussian clusters, two validation scenes each (6 known scores, as a 12-scene collection of six
+    known categories has), and a fourth cluster beside one of them: the default calibration flags the fourth and
+    keeps fresh scenes of the three; the Student-t margin, the default before, lets the fourth through. With one
+    validation scene per cluster the thresholds stay finite and the collection is warned about."""
+    g = torch.Generator().manual_seed(0)
+    centres = torch.zeros(4, 8)
+    centres[0, 0], centres[1, 1], centres[2, 2] = 12.0, 12.0, 12.0
+    centres[3] = torch.tensor([12.0, 0.0, 0.0, 5.0, 0, 0, 0, 0])  # unknown: beside cluster 0, 5 scene spreads away
+    train, owners = _synthetic_scenes(centres[:3], 10, 24, g)
+    val, val_owners = _synthetic_scenes(centres[:3], 2, 24, g)
+    data = CalibrationInputs(
+        train_features=torch.cat([f for f, _ in train]), train_logits=torch.cat([z for _, z in train]),
+        train_labels=torch.tensor(owners).repeat_interleave(24), train_scene_index=torch.arange(len(train)).repeat_interleave(24),
+        val=val, val_labels=torch.tensor(val_owners), holdout_val=[])
+    fresh, fresh_owners = _synthetic_scenes(centres, 20, 14, g)
+
+    def flagged(config: TrainConfig) -> tuple[float, float]:
+        stats, thresholds, metrics = calibrate_inputs(data, config, 3)
+        assert all(math.isfinite(t) for t in thresholds.values())
+        score = DEFAULT_SCORE
+        out = torch.tensor([scene_scores(z, f, stats)[score] < thresholds[score] for f, z in fresh])
+        owner = torch.tensor(fresh_owners)
+        return float(out[owner < 3].double().mean()), float(out[owner == 3].double().mean())
+
+    known, unknown = flagged(TrainConfig())
+    # a threshold at the smallest of n exchangeable known scores flags a new one 1 / (n + 1) of the time (1/7 here)
+    assert known <= 0.1 and unknown >= 0.9, (known, unknown)
+    _, unknown_margin = flagged(TrainConfig(threshold_rule="margin"))
+    assert unknown_margin < 0.5
+    one = [0, 2, 4]  # one validation scene per cluster
+    data = replace(data, val=[val[i] for i in one], val_labels=data.val_labels[one])
+    flagged(TrainConfig())  # finite thresholds
+    # one validation scene per category is warned about
+    lines = calibration_warnings({"a": 10, "b": 10, "c": 10}, {"a": 1, "b": 1, "c": 1}, 24)
+    assert any("validation scenes" in line and "a 1" in line for line in lines)

@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
 from classifier.model import build_model, load_pretrained
-from classifier.predict import FeatureStats
+from classifier.predict import FeatureStats, scene_scores
 from classifier.store import (
     META_FILE,
     WEIGHTS_FILE,
@@ -20,7 +21,9 @@ from classifier.store import (
     ClassifierMeta,
     classify_views,
     load_classifier,
+    model_inputs,
     save_classifier,
+    view_outputs,
 )
 from nerfmeta.errors import ConfigError, NerfmetaError
 
@@ -86,6 +89,26 @@ def test_class_scale_is_saved_and_required_by_its_score(saved: Path, tmp_path: P
                                          "thresholds": thresholds}), old.model, old.stats)
     save_classifier(tmp_path / "older", older, {})
     assert classify_views(load_classifier(tmp_path / "older"), _views()).score_name == "mahalanobis"
+
+
+def test_score_norm_is_saved_and_required_by_the_combined_score(tmp_path: Path):
+    base = _classifier()
+    norm = torch.tensor([2.0, 0.5, -1.0, 0.25])
+    meta = ClassifierMeta(**{**base.meta.__dict__, "score": "combined", "threshold": -3.0,
+                             "thresholds": {**base.meta.thresholds, "combined": -3.0}})
+    save_classifier(tmp_path / "new", Classifier(meta, base.model, replace(base.stats, score_norm=norm)), {})
+    loaded = load_classifier(tmp_path / "new")
+    assert loaded.stats.score_norm.tolist() == norm.tolist()
+    prediction = classify_views(loaded, _views())
+    assert prediction.score_name == "combined"
+    scores = scene_scores(*reversed(view_outputs(loaded.model, model_inputs(_views(), loaded.meta))), loaded.stats)
+    assert prediction.score == pytest.approx((scores["energy"] - 2.0) / 0.5 + (scores["class_mahalanobis"] + 1.0) / 0.25)
+    save_classifier(tmp_path / "bare", Classifier(meta, base.model, base.stats), {})
+    with pytest.raises(ClassifierError, match="score_norm is missing"):
+        load_classifier(tmp_path / "bare")
+    save_classifier(tmp_path / "bad", Classifier(meta, base.model, replace(base.stats, score_norm=torch.tensor([1.0, 0.0, 1.0, 1.0]))), {})
+    with pytest.raises(ClassifierError, match="score_norm must hold"):
+        load_classifier(tmp_path / "bad")
 
 
 def test_build_model_is_a_function_of_the_seed_and_leaves_global_rng_alone():

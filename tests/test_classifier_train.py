@@ -60,7 +60,7 @@ def test_auto_score_picks_the_best_validation_auroc_else_the_default():
                                "mahalanobis": {"holdout_val_auroc": 0.95}, "class_mahalanobis": {"holdout_val_auroc": 0.96}}}
     assert select_score("auto", with_holdout)[0] == "energy"
     tie = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
-    assert select_score("auto", tie)[0] == DEFAULT_SCORE == "class_mahalanobis"
+    assert select_score("auto", tie)[0] == DEFAULT_SCORE == "combined"
     without = {"scores": {k: {} for k in SCORES}}
     assert select_score("auto", without) == (DEFAULT_SCORE, select_score("auto", without)[1])
     assert select_score("msp", with_holdout) == ("msp", "given")
@@ -100,11 +100,11 @@ def test_train_classifier_writes_a_complete_folder_and_reloads(collection: Path,
     assert doc["input"]["normalization"]["mean"] == list(config.mean) and doc["recipe"]["epochs"] == 1
     scores = doc["validation"]["scores"]
     assert "holdout_val_auroc" in scores["mahalanobis"] and doc["validation"]["holdout_val_scenes"] == 1
-    # the threshold keeps 99 % of the known val scenes: with two scenes, the margin puts it below both
-    assert scores["energy"]["val_false_unknown_rate"] == 0.0
+    # the 1 % quantile of two known val scenes lies just above the lower one (linear interpolation)
+    assert scores["energy"]["val_false_unknown_rate"] == 0.5
     # one validation and one training scene per category: too few to calibrate, said in classifier.json
     calibration = doc["calibration"]
-    assert calibration["threshold_rule"] == "margin" and calibration["scale_prior_scenes"] >= 1.0
+    assert calibration["threshold_rule"] == "quantile" and calibration["scale_prior_scenes"] >= 1.0
     assert len(calibration["warnings"]) == 3 and "chair 1, mug 1" in calibration["warnings"][0]
     clf = load_classifier(out)
     views = read_scene_views(collection / "chair" / "chair_002", size=16, background=clf.meta.background)
