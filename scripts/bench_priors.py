@@ -22,7 +22,7 @@ deficit against scratch at any common evaluation time (scratch interpolated).
 
 Usage::
 
-    flock /work/wt/bench.lock .venv/bin/python scripts/bench_priors.py --out runs/bench_priors --seed 11 [--mlp] [--write]
+    flock /work/wt/bench.lock .venv/bin/python scripts/bench_priors.py --out runs/bench_priors --seed 11 [--workers 2] [--mlp]
 """
 
 from __future__ import annotations
@@ -32,11 +32,13 @@ import dataclasses
 import datetime
 import json
 import math
+import multiprocessing
 import os
 import statistics
 import subprocess
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -202,7 +204,7 @@ def mlp_arm(arm: str, scene_path: Path, zoo_dir: Path) -> Curve:
 # ----- the benchmark ----------------------------------------------------------------------------
 
 
-def make_collection(out: Path, seed: int, resolution: int, unseen: int) -> list[tuple[str, str, Path]]:
+def make_collection(out: Path, seed: int, resolution: int, seen: int, unseen: int) -> list[tuple[str, str, Path]]:
     """(name, group, path) of the benchmark's scenes, generating the collection when absent."""
     coll = out / f"collection_{resolution}px_seed{seed}"
     per = max(1, math.ceil(unseen / len(UNSEEN)))
@@ -210,7 +212,7 @@ def make_collection(out: Path, seed: int, resolution: int, unseen: int) -> list[
         subprocess.run([str(ROOT / ".venv" / "bin" / "nerfmeta"), "make-collection", str(coll), "--categories",
                         ",".join(SEEN + UNSEEN), "--scenes-per-category", str(per), "--views", "24", "--test-views", "8",
                         "--resolution", str(resolution), "--seed", str(seed), "--workers", "1"], check=True)
-    scenes = [(f"{c}_000", "seen", coll / c / f"{c}_000") for c in SEEN]
+    scenes = [(f"{c}_000", "seen", coll / c / f"{c}_000") for c in SEEN[:seen]]
     held = [(f"{c}_{i:03d}", "unseen", coll / c / f"{c}_{i:03d}") for i in range(per) for c in UNSEEN][:unseen]
     return scenes + held
 
@@ -265,44 +267,54 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
     return lines
 
 
+def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
+    """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
+    k, name, group, path, arms, iters, zoo = job
+    torch.set_num_threads(1)
+    order = arms[k % len(arms):] + arms[: k % len(arms)]
+    curves = {arm: grid_arm(arm, path, iters) for arm in order}
+    mlp: dict[str, Curve] = {}
+    if zoo is not None:
+        for arm in (("scratch-nerf", "routed-nerf") if k % 2 == 0 else ("routed-nerf", "scratch-nerf")):
+            mlp[arm] = mlp_arm(arm, path, zoo)
+    res = {"group": group, "curves": {a: dataclasses.asdict(c) for a, c in {**curves, **mlp}.items()},
+           "figures": scene_figures(curves)}
+    if mlp:
+        res["mlp_figures"] = scene_figures(mlp, base="scratch-nerf")
+    return name, res
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_priors")
     p.add_argument("--seed", type=int, default=11, help="collection seed (not one used while designing: 7)")
     p.add_argument("--resolution", type=int, default=64)
-    p.add_argument("--unseen", type=int, default=6, help="held-out-category scenes")
+    p.add_argument("--seen", type=int, default=6, help="seen-category scenes (one per category, up to 6)")
+    p.add_argument("--unseen", type=int, default=5, help="held-out-category scenes")
     p.add_argument("--iters", type=int, default=1000)
     p.add_argument("--arms", default=",".join(GRID_ARMS))
     p.add_argument("--mlp", action="store_true", help="also the zoo's NeRF-MLP setting: scratch-nerf vs routed-nerf")
     p.add_argument("--zoo", type=Path, default=ROOT / "model_zoo")
     p.add_argument("--only", default="", help="comma-separated scene names (default: all)")
+    p.add_argument("--workers", type=int, default=2, help="scenes fitted at once (one torch thread each)")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     arms = tuple(a for a in args.arms.split(",") if a)
     load_before = os.getloadavg()
     t_start = time.perf_counter()
-    scenes = make_collection(args.out, args.seed, args.resolution, args.unseen)
+    args.out.mkdir(parents=True, exist_ok=True)
+    scenes = make_collection(args.out, args.seed, args.resolution, args.seen, args.unseen)
     if args.only:
         scenes = [s for s in scenes if s[0] in args.only.split(",")]
     results: dict[str, Any] = {}
-    for k, (name, group, path) in enumerate(scenes):
-        order = arms[k % len(arms):] + arms[: k % len(arms)]  # rotate which arm runs first
-        curves: dict[str, Curve] = {}
-        for arm in order:
-            curves[arm] = grid_arm(arm, path, args.iters)
-        mlp: dict[str, Curve] = {}
-        if args.mlp:
-            for arm in (("scratch-nerf", "routed-nerf") if k % 2 == 0 else ("routed-nerf", "scratch-nerf")):
-                mlp[arm] = mlp_arm(arm, path, args.zoo)
-        results[name] = {"group": group, "curves": {a: dataclasses.asdict(c) for a, c in {**curves, **mlp}.items()},
-                         "figures": scene_figures(curves)}
-        if mlp:
-            results[name]["mlp_figures"] = scene_figures(mlp, base="scratch-nerf")
-        figs = results[name]["figures"]
-        print(name, {a: (f["final_psnr"], f["reach_fraction"], f["gain_2s_db"], f["worst_deficit_db"]) for a, f in figs.items()},
-              flush=True)
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None) for k, (name, group, path) in enumerate(scenes)]
+    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for name, res in pool.map(fit_scene, jobs):
+            results[name] = res
+            figs = res["figures"]
+            print(name, {a: (f["final_psnr"], f["reach_fraction"], f["gain_2s_db"], f["worst_deficit_db"]) for a, f in figs.items()},
+                  flush=True)
+            (args.out / "results.json").write_text(json.dumps(results, indent=1))
     doc = {"date": datetime.date.today().isoformat(), "load_before": load_before, "load_after": os.getloadavg(),
            "minutes": round((time.perf_counter() - t_start) / 60, 2), "seed": args.seed, "resolution": args.resolution,
            "iters": args.iters, "arms": arms, "results": results}
