@@ -131,3 +131,23 @@ def test_busy_scene_leaves_the_grid_untouched():
     report = carve_grid_start(model, scene, torch.ones(3))
     assert not report.applied and "not a uniform background" in report.reason
     assert all(torch.equal(before[n], p) for n, p in model.named_parameters())
+
+
+def test_fit_with_init_carve_records_the_start(tiny_scene, tmp_path):
+    from nerfmeta.fit.loop import FitConfig
+    from nerfmeta.fit.run import RunConfig, run_fit
+
+    model = {"num_voxels": 12**3, "coarse_num_voxels": 8**3, "coarse_iters": 2, "growth_steps": []}
+    config = RunConfig(scene=str(tiny_scene), backbone="grid", model=model, init="carve",
+                       fit=FitConfig(iters=4, batch_rays=64, eval_every=0, checkpoint_every=0, final_ssim=False))
+    summary = run_fit(config, tmp_path / "run")
+    assert summary["init"] == "carve" and summary["init_path"] is None
+    assert summary["init_source"]["kind"] == "carve" and summary["init_source"]["applied"] is True
+
+
+def test_init_carve_refuses_the_mlp(tiny_scene, tmp_path):
+    from nerfmeta.errors import ConfigError
+    from nerfmeta.fit.run import RunConfig, run_fit
+
+    with pytest.raises(ConfigError, match="--init carve starts a voxel grid"):
+        run_fit(RunConfig(scene=str(tiny_scene), backbone="nerf", init="carve"), tmp_path / "run")
