@@ -151,3 +151,14 @@ def test_init_carve_refuses_the_mlp(tiny_scene, tmp_path):
 
     with pytest.raises(ConfigError, match="--init carve starts a voxel grid"):
         run_fit(RunConfig(scene=str(tiny_scene), backbone="nerf", init="carve"), tmp_path / "run")
+
+
+def test_carve_route_replaces_only_a_scratch_grid_start():
+    from nerfmeta.route import Route, carve_route
+
+    grid = carve_route(Route("scratch", "scratch", 0, "no model zoo found", backbone="grid"))
+    assert (grid.route, grid.init) == ("carve", "carve") and grid.reason.startswith("no model zoo found; the grid starts")
+    nerf = Route("scratch", "scratch", 0, "no model zoo found", backbone="nerf")
+    assert carve_route(nerf) == nerf
+    meta = Route("meta", "meta:/zoo/meta", 0, "unknown", backbone="grid")
+    assert carve_route(meta) == meta
