@@ -243,8 +243,8 @@ def mean_sd(values: list[float]) -> str:
 
 def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str]:
     """Markdown rows: per scene and per group (mean +- sd) against ``base``."""
-    lines = [f"| scene | group | arm | final PSNR (dB) | {base} final | time to {base}'s final / {base}'s time | PSNR at 2 s | "
-             f"{base} at 2 s | worst deficit (dB) |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"| scene | group | arm | final PSNR (dB) | {base} final | time to {base}'s final / {base}'s time | ({base} itself) | "
+             f"PSNR at 2 s | {base} at 2 s | worst deficit (dB) |", "|---|---|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple[str, str], list[dict]] = {}
     for name, res in results.items():
         figs = res["figures"]
@@ -256,7 +256,8 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
             frac = "never" if f["reach_fraction"] is None else f"{f['reach_fraction']:.2f}"
             at2 = "n/a" if f["psnr_2s"] is None else f"{f['psnr_2s']:.2f}"
             b2 = figs[base]["psnr_2s"]
-            lines.append(f"| {name} | {res['group']} | {arm} | {f['final_psnr']:.2f} | {f['target_psnr']:.2f} | {frac} | {at2} | "
+            own = figs[base]["reach_fraction"]
+            lines.append(f"| {name} | {res['group']} | {arm} | {f['final_psnr']:.2f} | {f['target_psnr']:.2f} | {frac} | {own:.2f} | {at2} | "
                          f"{'n/a' if b2 is None else f'{b2:.2f}'} | {f['worst_deficit_db']:+.2f} |")
     lines += ["", f"| group | arm | n | reached | time fraction (reached) | gain at 2 s (dB) | worst deficit (dB) |",
               "|---|---|---|---|---|---|---|"]
@@ -284,6 +285,15 @@ def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     return name, res
 
 
+def tables(results: dict[str, Any], arms: tuple[str, ...], mlp: bool) -> list[str]:
+    """The grid table against scratch, then (``mlp``) the MLP table against scratch-nerf."""
+    lines = table(results, arms, "scratch")
+    if mlp:
+        mlp_results = {n: {**r, "figures": r["mlp_figures"]} for n, r in results.items()}
+        lines += [""] + table(mlp_results, ("scratch-nerf", "routed-nerf"), "scratch-nerf")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_priors")
@@ -297,7 +307,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--zoo", type=Path, default=ROOT / "model_zoo")
     p.add_argument("--only", default="", help="comma-separated scene names (default: all)")
     p.add_argument("--workers", type=int, default=2, help="scenes fitted at once (one torch thread each)")
+    p.add_argument("--report", action="store_true", help="only print the tables of OUT/results.json")
     args = p.parse_args(argv)
+    if args.report:
+        doc = json.loads((args.out / "results.json").read_text())
+        print("\n".join(tables(doc["results"], tuple(doc["arms"]), any("mlp_figures" in r for r in doc["results"].values()))))
+        return 0
     torch.set_num_threads(1)
     arms = tuple(a for a in args.arms.split(",") if a)
     load_before = os.getloadavg()
@@ -319,10 +334,7 @@ def main(argv: list[str] | None = None) -> int:
            "minutes": round((time.perf_counter() - t_start) / 60, 2), "seed": args.seed, "resolution": args.resolution,
            "iters": args.iters, "arms": arms, "results": results}
     (args.out / "results.json").write_text(json.dumps(doc, indent=1))
-    lines = table(results, arms, "scratch")
-    if args.mlp:
-        mlp_results = {n: {**r, "figures": r["mlp_figures"]} for n, r in results.items()}
-        lines += [""] + table(mlp_results, ("scratch-nerf", "routed-nerf"), "scratch-nerf")
+    lines = tables(results, arms, args.mlp)
     (args.out / "table.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"load {load_before} -> {doc['load_after']}, {doc['minutes']} min")
