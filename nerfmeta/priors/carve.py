@@ -13,12 +13,9 @@ The colour start is the mean, over the views that see a hull point, of the colou
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import torch
-
-log = logging.getLogger(__name__)
 
 ALPHA_FOREGROUND = 0.5
 """A pixel is foreground when its alpha exceeds this."""
