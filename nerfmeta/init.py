@@ -107,11 +107,15 @@ def load_init(folder: str | os.PathLike, *, expect_kind: str | None = None) -> S
     return SavedInit(folder, kind, backbone, config, structure, state, meta)
 
 
+FEED_FORWARD = ("carve",)
+"""Starts computed from the scene's own views, with no saved weights (``carve``: :mod:`nerfmeta.priors`, grid only)."""
+
+
 def parse_init(spec: str) -> tuple[str, Path | None]:
-    """``scratch`` | ``category:DIR`` | ``meta:DIR`` -> (kind, folder)."""
-    if spec == "scratch":
-        return "scratch", None
+    """``scratch`` | ``carve`` | ``category:DIR`` | ``meta:DIR`` -> (kind, folder)."""
+    if spec == "scratch" or spec in FEED_FORWARD:
+        return spec, None
     kind, sep, folder = spec.partition(":")
     if not sep or kind not in KINDS or not folder:
-        raise ConfigError(f"--init {spec!r}: use scratch, category:DIR or meta:DIR")
+        raise ConfigError(f"--init {spec!r}: use scratch, carve, category:DIR or meta:DIR")
     return kind, Path(folder)

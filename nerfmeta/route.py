@@ -53,7 +53,11 @@ from nerfmeta.zoo import Zoo, ZooEntry
 
 log = logging.getLogger(__name__)
 
-ROUTES = ("category", "meta", "scratch")
+ROUTES = ("category", "meta", "carve", "scratch")
+CARVE_ROUTE = False
+"""Whether a scratch route on the voxel grid becomes the carved start (``--init carve``, :mod:`nerfmeta.priors`).
+Off: on held-out generated scenes it is far ahead early but not within 0.1 dB of scratch at every time (BENCHMARKS.md,
+*Grid priors (#17)*), and there is no early check yet that would drop it where it falls behind."""
 COMPARE_DIR = "compare"
 DEFAULT_BACKBONE = "grid"
 """The backbone of a fit that names none: the voxel grid, the fastest scratch fit."""
@@ -301,6 +305,19 @@ def decide_route(
                  f"{backbone} from scratch", checks=tuple(checks), **facts)
 
 
+def carve_route(route: Route) -> Route:
+    """``route`` with a scratch grid start replaced by the carved start (pure); any other route unchanged.
+
+    The carving checks its own applicability when the fit builds its start (alpha, or a uniform border background;
+    enough views): where it does not apply the grid starts from scratch and ``summary.json["init_source"]`` says why.
+    """
+    if route.route != "scratch" or route.backbone != "grid":
+        return route
+    reason = (f"{route.reason}; the grid starts from the visual hull of the scene's own training views where they can "
+              "be carved (alpha or a uniform background), else from scratch")
+    return dataclasses.replace(route, route="carve", init="carve", reason=reason)
+
+
 def _score_text(score: Mapping[str, Any] | None) -> str:
     if not score:
         return "n/a"
@@ -370,6 +387,8 @@ def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int) -> Route:
         priors = {e.name: prior_facts(zoo, e) for e in zoo.entries if e.kind in ("category", "meta")}
         prediction = classify_scene(config.scene, zoo, config.background)
     route = decide_route(prediction, zoo, freeze, backbone=config.backbone, scene=scene, priors=priors)
+    if CARVE_ROUTE:
+        route = carve_route(route)
     return dataclasses.replace(route, classify_s=round(time.perf_counter() - t0, 3))
 
 

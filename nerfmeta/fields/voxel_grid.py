@@ -381,6 +381,21 @@ class VoxelGrid(RadianceModel):
         self.density_coarse = nn.Parameter(torch.zeros(1, *self.size, device=bounds.device))
         self.color_coarse = nn.Parameter(torch.zeros(3, *self.size, device=bounds.device))
 
+    @torch.no_grad()
+    def load_coarse_start(self, sigma: torch.Tensor, rgb: torch.Tensor | None = None) -> None:
+        """Start the coarse grids from a feed-forward guess (e.g. :mod:`nerfmeta.priors.carve`) before the first step.
+
+        Args:
+            sigma: (X, Y, Z) density per world unit at ``grid_points(self.bounds, self.size)`` (> 0).
+            rgb: (3, X, Y, Z) colour in [0, 1] at those points, None to keep the coarse colour grid.
+        """
+        if self.stage != "coarse" or tuple(sigma.shape) != tuple(self.size):
+            raise ValueError(f"a coarse start needs the coarse stage and a {tuple(self.size)} grid, got stage "
+                             f"{self.stage!r} and {tuple(sigma.shape)}")
+        self.density_coarse.data = (softplus_inverse(sigma.float() * self.unit) - self.shift)[None].to(self.density_coarse)
+        if rgb is not None:
+            self.color_coarse.data = torch.logit(rgb.float().clamp(1e-3, 1.0 - 1e-3)).to(self.color_coarse)
+
     def _fine_num_voxels(self) -> int:
         return max(8, int(self.config.num_voxels / 2 ** (len(self.config.growth_steps) - self.level)))
 

@@ -82,7 +82,7 @@ class RunConfig:
     device: str = "cpu"
     """Torch device."""
     init: str = "scratch"
-    """Where the initial weights come from: ``scratch``, ``category:DIR`` or ``meta:DIR``."""
+    """Where the initial weights come from: ``scratch``, ``carve`` (grid: the visual hull of the scene's own training views, where they can be carved), ``category:DIR`` or ``meta:DIR``."""
     freeze: int = bounded(0, low=0)
     """Number of leading layers (of ``model.layers()``, input to output) kept frozen; needs a saved init."""
     renders: int = bounded(RENDERED_VIEWS, low=0)
@@ -133,10 +133,11 @@ class InitInfo:
     """What a fit started from: the resolved ``init`` and ``freeze`` (written to config and summary).
 
     Attributes:
-        kind: ``scratch``, ``category`` or ``meta``.
-        path: the initialisation folder (absolute), None for scratch.
-        sha256: SHA-256 of its weights file, None for scratch.
-        meta: the saved initialisation's training facts (category, scenes, steps, PSNR, ...).
+        kind: ``scratch``, ``carve``, ``category`` or ``meta``.
+        path: the initialisation folder (absolute), None for scratch and carve.
+        sha256: SHA-256 of its weights file, None for scratch and carve.
+        meta: the saved initialisation's training facts (category, scenes, steps, PSNR, ...); for carve, what the
+            carving did or why it was skipped (:class:`~nerfmeta.priors.start.StartReport`).
         frozen_layers: names of the frozen layers, input to output.
         frozen_parameters: names of their parameters.
     """
@@ -180,11 +181,19 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     if folder is None:
         if config.freeze:
             raise ConfigError(f"--freeze {config.freeze} needs --init category:DIR or meta:DIR; "
-                              "a scratch fit has no learned layers to keep")
+                              f"a {kind} fit has no learned layers to keep")
+        if kind == "carve" and config.backbone != "grid":
+            raise ConfigError(f"--init carve starts a voxel grid; this fit's backbone is {config.backbone} (use --backbone grid)")
         model_config = config.model_config(scene)
         model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
-        info = InitInfo("scratch", None, None, {}, (), ())
-        return model, model_config, info
+        meta: dict[str, Any] = {}
+        if kind == "carve":
+            from nerfmeta.priors.start import carve_grid_start
+
+            report = carve_grid_start(model, scene, torch.tensor(config.background, dtype=torch.float32, device=device))
+            log.info("--init carve: %s", report.reason)
+            meta = report.as_json()
+        return model, model_config, InitInfo(kind, None, None, meta, (), ())
     saved = load_init(folder, expect_kind=kind)
     if saved.backbone != config.backbone:
         raise ConfigError(f"--init {config.init}: holds a {saved.backbone} model, not {config.backbone}; "

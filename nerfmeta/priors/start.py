@@ -1,0 +1,73 @@
+"""Apply a carved start to a voxel grid about to fit a scene (see :mod:`nerfmeta.priors.carve`)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from nerfmeta.data.scene import Scene
+from nerfmeta.fields.grid_ops import grid_points
+from nerfmeta.priors.carve import CarveStart, carve
+
+HULL_ALPHA = 0.3
+"""Alpha of one coarse marching step inside the carved hull (opaque within a few voxels; the fit carves the rest)."""
+EMPTY_ALPHA = 1e-6
+"""Alpha of one coarse marching step outside the hull."""
+CARVE_COARSE_ITERS = 100
+"""Coarse steps a carved start keeps: scratch's 100, so only the start differs (on a design scene, 20 steps were 1.3 dB
+ahead at 2 s but ended 0.7 dB below scratch at 1000 iterations; 100 ended 0.15 dB below, within run-to-run noise)."""
+
+
+@dataclass(frozen=True)
+class StartReport:
+    """What a feed-forward start did to a fit.
+
+    Attributes:
+        applied: whether the model's grids were started from it.
+        kind: the start's name (``carve``).
+        reason: one sentence: what was applied, or why not.
+        build_s: wall seconds spent building it (part of the fit's wall-clock time).
+        figures: JSON-able numbers (hull fraction, mask source, background).
+    """
+
+    applied: bool
+    kind: str
+    reason: str
+    build_s: float
+    figures: dict[str, Any]
+
+    def as_json(self) -> dict[str, Any]:
+        return {"applied": self.applied, "kind": self.kind, "reason": self.reason, "build_s": self.build_s,
+                "figures": dict(self.figures)}
+
+
+def sigma_for_alpha(alpha: float, step: float) -> float:
+    """Density per world unit giving ``alpha`` over a marching step of ``step`` world units."""
+    return -math.log1p(-alpha) / step
+
+
+def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartReport:
+    """Start ``model``'s coarse stage (a :class:`~nerfmeta.fields.voxel_grid.VoxelGrid`) from the visual hull of
+    ``scene``'s training views; leave it untouched, with the reason, where the views cannot be carved."""
+    t0 = time.perf_counter()
+    if getattr(model, "stage", None) != "coarse":
+        return StartReport(False, "carve", "the grid has no coarse stage to start (coarse_iters = 0): not carved",
+                           0.0, {})
+    train = scene.subset("train")
+    device = model.bounds.device
+    pts = grid_points(model.bounds, model.size).reshape(-1, 3)
+    result = carve(pts, train.images.to(device), None if train.alphas is None else train.alphas.to(device),
+                   train.poses.to(device), train.intrinsics.to(device), background.to(device))
+    if not isinstance(result, CarveStart):
+        return StartReport(False, "carve", result.reason, round(time.perf_counter() - t0, 4), {"source": result.source})
+    step = model.config.stepsize * model.voxel
+    sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), sigma_for_alpha(EMPTY_ALPHA, step))
+    model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
+    figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
+               "background": result.silhouettes.background, "views": train.n_views}
+    reason = f"{result.silhouettes.reason}: the coarse grid starts from the visual hull ({100 * result.hull_fraction:.1f}% of it)"
+    return StartReport(True, "carve", reason, round(time.perf_counter() - t0, 4), figures)
