@@ -34,10 +34,8 @@ import torch
 
 from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
 from nerfmeta.data import load_scene
-from nerfmeta.fields.registry import build_model, config_from_dict
-from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model
 from nerfmeta.fit.evaluate import render_view
-from nerfmeta.fit.sampler import fit_space
+from nerfmeta.fit.restore import load_fitted_run
 
 ARMS = {"ndc": ["--scene-type", "auto"], "bounded": ["--scene-type", "object"]}
 
@@ -47,7 +45,8 @@ def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: i
     load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch",
            "--time-budget", f"{args.budget:g}", "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
-           *ARMS[arm], *sum((["--set", s] for s in args.set), [])]
+           *ARMS[arm], *sum((["--set", s] for s in args.set), []),
+           *(sum((["--set", s] for s in args.ndc_set), []) if arm == "ndc" else [])]
     with open(out.with_suffix(".log"), "w") as log:
         proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT)
     if proc.returncode != 0:
@@ -56,15 +55,11 @@ def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: i
 
 
 @torch.no_grad()
-def render_speed(scene_path: Path, run: Path) -> tuple[float, list[np.ndarray]]:
+def render_speed(run: Path) -> tuple[float, list[np.ndarray]]:
     """Rays per second rendering the test views of a fitted run from its checkpoint, and the renders (H, W, 3)."""
-    config = json.loads((run / "config.json").read_text())
-    scene = fit_space(load_scene(scene_path, scene_type=config["scene_type"]))
-    model_config = config_from_dict(config["backbone"], config["model"])
-    model = build_model(config["backbone"], model_config, scene.bounds, seed=0)
-    restore_model(model, load_checkpoint(run / CHECKPOINT_NAME))
-    model.eval()
-    background = torch.tensor(config["background"], dtype=torch.float32)
+    fitted = load_fitted_run(run, "cpu")
+    scene, model = fitted.scene, fitted.model
+    background = torch.tensor(fitted.config.background, dtype=torch.float32)
     views = scene.split_indices("test").tolist()
     start = time.perf_counter()
     renders = [render_view(model, scene, v, background) for v in views]
@@ -80,6 +75,8 @@ def main() -> int:
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--keep", type=Path, default=None, help="write each run's test renders here (PNG)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="backbone override for both arms")
+    parser.add_argument("--ndc-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="backbone override for the ndc arm only (e.g. a regulariser tried against the bounded grid)")
     args = parser.parse_args()
     results: dict[str, list[dict]] = {arm: [] for arm in ARMS}
     with tempfile.TemporaryDirectory(prefix="bench_forward_") as tmp:
@@ -88,7 +85,7 @@ def main() -> int:
             for arm in ARMS:
                 run = Path(tmp) / f"{arm}{k}"
                 r = fit_once(scene, run, arm, args, k)
-                r["rays_per_s"], renders = render_speed(scene, run)
+                r["rays_per_s"], renders = render_speed(run)
                 results[arm].append(r)
                 if args.keep is not None:
                     args.keep.mkdir(parents=True, exist_ok=True)
