@@ -9,7 +9,9 @@ import torch
 
 from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
 from nerfmeta.data import load_scene
+from nerfmeta.fit.evaluate import evaluate_views
 from nerfmeta.fit.loop import FitConfig
+from nerfmeta.fit.restore import load_fitted_run
 from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
 from nerfmeta.fit.sampler import NDC_DEPTH_SCALE, RaySampler, fit_space, view_rays
 from nerfmeta.render.rays import image_rays
@@ -70,6 +72,11 @@ def test_fit_records_the_space_and_learns(forward_scene, tmp_path, scene_type, n
     assert saved["scene_type"] == scene_type
     records = read_metrics(tmp_path / "run" / "metrics.jsonl")
     assert records[-1]["train_psnr"] > records[0]["train_psnr"] + 3.0
+    # loaded back (render, mesh, eval-geometry), the run sees its scene in the space it was fitted in
+    fitted = load_fitted_run(tmp_path / "run")
+    assert (fitted.scene.ndc is not None) is ndc
+    again = evaluate_views(fitted.model, fitted.scene, list(fitted.scene.splits["test"]), torch.ones(3), with_ssim=False)
+    assert again.psnr == pytest.approx(summary["test_psnr"], abs=1e-3)
 
 
 def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forward_scene, tiny_scene):
