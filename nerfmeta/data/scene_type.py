@@ -136,19 +136,22 @@ def _rms_spread(points: torch.Tensor) -> float:
     return float(torch.linalg.vector_norm(points - points.mean(0), dim=-1).square().mean().sqrt())
 
 
-def border_pixels(images: torch.Tensor, fraction: float = BORDER_FRACTION) -> torch.Tensor:
-    """(n, H, W, 3) images -> (m, 3) the pixels of a frame ``fraction`` of the shorter side wide."""
-    n, h, w, _ = images.shape
-    k = max(1, int(round(fraction * min(h, w))))
-    mask = torch.zeros(h, w, dtype=torch.bool)
-    mask[:k, :] = mask[-k:, :] = True
-    mask[:, :k] = mask[:, -k:] = True
-    return images[:, mask].reshape(-1, images.shape[-1])
+def border_width(height: int, width: int, fraction: float = BORDER_FRACTION) -> int:
+    """Pixels in a frame ``fraction`` of the shorter image side wide (at least 1)."""
+    return max(1, int(round(fraction * min(height, width))))
+
+
+def border_pixels(images: torch.Tensor, width: int) -> torch.Tensor:
+    """(n, H, W, C) images -> (m, C) the pixels within ``width`` pixels of each image's edge."""
+    _, h, w, c = images.shape
+    edge = torch.zeros(h, w, dtype=torch.bool, device=images.device)
+    edge[:width], edge[-width:], edge[:, :width], edge[:, -width:] = True, True, True, True
+    return images[:, edge].reshape(-1, c)
 
 
 def border_spread(images: torch.Tensor) -> float:
     """RMS distance (RGB) of the border pixels of ``images`` (n, H, W, 3) from their median colour."""
-    px = border_pixels(images).double()
+    px = border_pixels(images, border_width(images.shape[1], images.shape[2])).double()
     median = px.median(dim=0).values
     return float(torch.linalg.vector_norm(px - median, dim=-1).square().mean().sqrt())
 

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import torch
 
+from nerfmeta.data.scene_type import border_pixels
+
 ALPHA_FOREGROUND = 0.5
 """A pixel is foreground when its alpha exceeds this."""
 BORDER_PIXELS = 2
@@ -71,14 +73,6 @@ class CarveStart:
     silhouettes: Silhouettes
 
 
-def border_pixels(images: torch.Tensor, width: int = BORDER_PIXELS) -> torch.Tensor:
-    """(V, H, W, C) images -> (K, C) the pixels within ``width`` of each image's edge."""
-    v, h, w, c = images.shape
-    edge = torch.zeros(h, w, dtype=torch.bool, device=images.device)
-    edge[:width], edge[-width:], edge[:, :width], edge[:, -width:] = True, True, True, True
-    return images[:, edge].reshape(-1, c)
-
-
 def uniform_background(images: torch.Tensor, *, tolerance: float = BACKGROUND_TOLERANCE,
                        fraction: float = UNIFORM_FRACTION) -> tuple[tuple[float, float, float] | None, float]:
     """The background colour of (V, H, W, 3) images when their borders are uniform, else None; and the uniform fraction.
@@ -86,7 +80,7 @@ def uniform_background(images: torch.Tensor, *, tolerance: float = BACKGROUND_TO
     The colour is the per-channel median of the border pixels; the borders are uniform when at least
     ``fraction`` of them lie within ``tolerance`` (every channel) of it.
     """
-    border = border_pixels(images)
+    border = border_pixels(images, BORDER_PIXELS)
     colour = border.median(0).values
     close = ((border - colour).abs() <= tolerance).all(-1).float().mean().item()
     if close < fraction:
