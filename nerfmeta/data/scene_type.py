@@ -96,6 +96,18 @@ def view_directions(poses: torch.Tensor) -> torch.Tensor:
     return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def axis_normal_equations(origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(A (3, 3), b (3,))`` with ``A x = b`` the least-squares point nearest every line ``o + t d``.
+
+    Args:
+        origins: (n, 3) points on the lines.
+        directions: (n, 3) unit directions (same dtype).
+    """
+    eye = torch.eye(3, dtype=origins.dtype, device=origins.device)
+    proj = eye - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3): removes the part along each line
+    return proj.sum(0), (proj @ origins[:, :, None]).sum(0)[:, 0]
+
+
 def focus_point(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor | None:
     """The point nearest, in least squares, to every line ``o + t d`` (None when they are parallel).
 
@@ -105,9 +117,7 @@ def focus_point(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor
     Returns:
         (3,) float64 point, or None when the normal equations are singular to working precision.
     """
-    o, d = origins.double(), directions.double()
-    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # (n, 3, 3)
-    a, b = proj.sum(0), (proj @ o[:, :, None]).sum(0)[:, 0]
+    a, b = axis_normal_equations(origins.double(), directions.double())
     eig = torch.linalg.eigvalsh(a)
     if eig[0] <= 1e-6 * eig[-1].clamp_min(1e-300):
         return None

@@ -20,6 +20,7 @@ import math
 
 import torch
 
+from nerfmeta.data.scene_type import axis_normal_equations
 from nerfmeta.render.cameras import look_at
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
@@ -58,10 +59,7 @@ def look_at_centre(poses: torch.Tensor) -> torch.Tensor:
     Raises:
         ValueError: the axes are (nearly) parallel, so they share no such point.
     """
-    origins, dirs = poses[:, :3, 3], viewing_directions(poses)
-    eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
-    proj = eye - dirs[:, :, None] * dirs[:, None, :]  # (n, 3, 3): removes the part along each axis
-    a, b = proj.sum(0), (proj @ origins[:, :, None]).sum(0)[:, 0]
+    a, b = axis_normal_equations(poses[:, :3, 3], viewing_directions(poses))
     if float(torch.linalg.eigvalsh(a).min()) < 1e-3 * len(poses):
         raise ValueError("the cameras' optical axes are parallel: they look at no common point")
     return torch.linalg.solve(a, b)
