@@ -15,9 +15,13 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition
 from nerfmeta.fields.grid_ops import (
+    ChannelsLastCopies,
     corner_indices_weights,
+    corners_from_coords,
+    grid_coords,
     grid_points,
     interp_cf,
+    interp_coords,
     interp_gather,
     trilinear_gather,
 )
@@ -104,6 +108,45 @@ def test_trilinear_gather_matches_grid_sample_and_hits_corners_exactly():
     idx, w = corner_indices_weights(points, box, size)
     assert idx.shape == w.shape == (8, 50)
     assert (w >= 0).all() and torch.allclose(w.sum(0), torch.ones(50, dtype=torch.float64))
+
+
+def test_interp_coords_equals_the_gather_in_either_memory_layout():
+    g = torch.Generator().manual_seed(2)
+    size = (4, 5, 6)
+    grid = torch.randn(5, *size, generator=g, dtype=torch.float64)
+    points = torch.rand(60, 3, generator=g, dtype=torch.float64) * 2.4 - 1.2  # some outside: clamped to the faces
+    x = grid_coords(points, BOX.double(), size).contiguous()
+    want = trilinear_gather(grid.reshape(5, -1), *corners_from_coords(x, size))
+    channels_last = grid.unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)[0]
+    for g_ in (grid, channels_last):
+        torch.testing.assert_close(interp_coords(g_, x), want, rtol=0, atol=1e-12)
+    corners = grid_coords(grid_points(BOX.double(), size).reshape(-1, 3), BOX.double(), size).contiguous()
+    torch.testing.assert_close(interp_coords(grid, corners), grid.reshape(5, -1), rtol=0, atol=1e-12)
+
+
+def test_channels_last_copies_follow_in_place_updates_and_replacement():
+    cache = ChannelsLastCopies()
+    grid = torch.nn.Parameter(torch.zeros(3, 2, 2, 2))
+    first = cache.get("g", grid)
+    assert first.unsqueeze(0).is_contiguous(memory_format=torch.channels_last_3d) and torch.equal(first, grid.detach())
+    assert cache.get("g", grid) is first  # unchanged: cached
+    with torch.no_grad():
+        grid.add_(1.0)  # an optimiser step
+    assert torch.equal(cache.get("g", grid), torch.ones(3, 2, 2, 2))
+    bigger = torch.nn.Parameter(torch.full((3, 3, 3, 3), 2.0))  # growth replaces the parameter
+    assert torch.equal(cache.get("g", bigger), bigger.detach())
+
+
+def test_test_time_render_equals_the_training_path(stages, scene):
+    """Without gradient the grid interpolates with grid_sample; the render is the gather path's to float rounding."""
+    rays = view_rays(scene, 0, "cpu")
+    for model in (stages.coarse, stages.final):  # the colour grid and the feature grid + MLP
+        with torch.no_grad():
+            fast = model(rays, background=WHITE)
+        slow = model(rays, background=WHITE)  # with gradient: corner gathers
+        assert fast.samples_evaluated == slow.samples_evaluated > 0
+        torch.testing.assert_close(fast.rgb, slow.rgb.detach(), rtol=0, atol=1e-5)
+        torch.testing.assert_close(fast.depth, slow.depth.detach(), rtol=1e-5, atol=1e-5)
 
 
 # -- config ----------------------------------------------------------------------------------
@@ -276,3 +319,20 @@ def test_growth_keeps_frozen_grids_frozen(stages):
     model.freeze_first(1)
     model.begin_step(stages.grow_at, None)
     assert not model.density.requires_grad and model.features.requires_grad
+
+
+def test_distortion_term_only_when_weighted_and_it_reaches_the_density(scene):
+    rays = view_rays(scene, 0, "cpu")[:256]
+    for weight in (0.0, 0.5):
+        model = _model(dataclasses.replace(SMALL, distortion_weight=weight), bounds=scene.bounds)
+        with torch.no_grad():
+            model.density_coarse.add_(torch.rand(model.density_coarse.shape, generator=torch.Generator().manual_seed(0)) * 4)
+        out = model(rays, background=WHITE, train=True, generator=torch.Generator().manual_seed(1), target=rays.target)
+        assert ("distortion" in out.losses) == (weight > 0)
+        if weight:
+            term = out.losses["distortion"]
+            assert torch.isfinite(term) and term > 0
+            (grad,) = torch.autograd.grad(term, model.density_coarse)
+            assert grad.abs().sum() > 0
+        with torch.no_grad():
+            assert "distortion" not in model(rays, background=WHITE).extras  # test renders skip it

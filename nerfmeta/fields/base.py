@@ -31,7 +31,7 @@ from torch import nn
 
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.render.estimators import PackedSamples
-from nerfmeta.render.volume import render_packed
+from nerfmeta.render.volume import Composite, render_packed
 
 
 @dataclass
@@ -275,7 +275,16 @@ class RadianceModel(Field):
         comp = render_packed(sigma * samples.delta, samples.t, samples.ray_idx, samples.far, background,
                              lambda sel, ray_idx: self.get_outputs(embedding, sel, directions, ray_idx),
                              color_thres=plan.color_thres)
-        return RenderOutput(rgb=comp.rgb, acc=comp.acc, depth=comp.depth, samples_evaluated=len(samples))
+        extras = self.render_extras(rays, samples, comp) if train else {}
+        return RenderOutput(rgb=comp.rgb, acc=comp.acc, depth=comp.depth, samples_evaluated=len(samples), extras=extras)
+
+    def render_extras(self, rays: RayBatch, samples: PackedSamples, comp: Composite) -> dict[str, torch.Tensor]:
+        """Training renders only: per-ray tensors a loss term needs beyond colour (``RenderOutput.extras``).
+
+        Default: none. Called by :meth:`render` with the rays, their packed samples and the composite
+        (whose ``weights`` still carry the gradient).
+        """
+        return {}
 
     def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
         """Named, weighted loss terms of a render against ``target`` (n_rays, 3): ``mse`` (photometric)

@@ -28,12 +28,14 @@ import torch.nn.functional as F
 from nerfmeta.render.estimators import dilate, grid_points, nearest_from_coords
 
 __all__ = [
+    "ChannelsLastCopies",
     "corner_indices_weights",
     "corners_from_coords",
     "dilate",
     "grid_coords",
     "grid_points",
     "interp_cf",
+    "interp_coords",
     "interp_gather",
     "nearest_from_coords",
     "nearest_index",
@@ -179,6 +181,46 @@ def interp_gather(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor
     size = tuple(grid.shape[1:])
     idx, w = corner_indices_weights(points, bounds, size)  # type: ignore[arg-type]
     return trilinear_gather(grid.reshape(grid.shape[0], -1), idx, w.to(grid.dtype)).t()
+
+
+def interp_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation of a (C, X, Y, Z) grid at corner coordinates (3, N) (see :func:`grid_coords`).
+
+    One fused ``grid_sample`` (points outside the grid clamped to its faces, as in
+    :func:`corners_from_coords`), for test-time renders: it has no cheap backward, but forward it
+    is two to three times faster on a CPU than :func:`corners_from_coords` plus
+    :func:`trilinear_gather`, the more so when ``grid`` is in ``torch.channels_last_3d`` memory
+    (one read of all channels per corner). Values equal :func:`trilinear_gather`'s to float rounding.
+
+    Returns:
+        (C, N).
+    """
+    size = grid.shape[1:]
+    scale = torch.tensor([2.0 / (s - 1) for s in size], dtype=x.dtype, device=x.device)[:, None]
+    u = (x * scale - 1.0).flip(0).t()  # grid_sample wants (z, y, x) in [-1, 1]
+    out = F.grid_sample(grid.unsqueeze(0), u.reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border",
+                        align_corners=True)
+    return out.view(grid.shape[0], -1)
+
+
+class ChannelsLastCopies:
+    """Channels-last copies of grids for :func:`interp_coords`, kept until the grid changes.
+
+    A copy is remade when the grid's storage, shape or version counter (bumped by every in-place
+    update, e.g. an optimiser step) changes, so a cached copy is never stale.
+    """
+
+    def __init__(self) -> None:
+        self._copies: dict[str, tuple[tuple, torch.Tensor]] = {}
+
+    def get(self, name: str, grid: torch.Tensor) -> torch.Tensor:
+        """(C, X, Y, Z) ``grid`` (a view of) in channels-last memory; the same values."""
+        key = (grid.data_ptr(), tuple(grid.shape), grid._version, grid.dtype, grid.device)
+        hit = self._copies.get(name)
+        if hit is None or hit[0] != key:
+            copy = grid.detach().unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)[0]
+            hit = self._copies[name] = (key, copy)
+        return hit[1]
 
 
 def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:

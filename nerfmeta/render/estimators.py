@@ -146,9 +146,10 @@ def contracted_march(origins: torch.Tensor, directions: torch.Tensor, near: torc
     t1_s = t1.index_select(0, ray_idx)
     start = m - jitter.index_select(0, ray_idx) * delta_m
     edges = from_march(torch.stack([start, start + delta_m]), t1_s[None], scale)  # (2, M)
-    o, d = origins.index_select(0, ray_idx), directions.index_select(0, ray_idx)
-    ends = box.contract(torch.cat([o + edges[0, :, None] * d, o + edges[1, :, None] * d]))
-    delta = torch.linalg.vector_norm(ends[len(m):] - ends[: len(m)], dim=-1)
+    o = origins.t().contiguous().index_select(1, ray_idx)  # (3, M): component-major, see PackedSamples.points
+    d = directions.t().contiguous().index_select(1, ray_idx)
+    a, b = (box.contract(torch.addcmul(o, e[None], d).t()).t() for e in edges)
+    delta = (b - a).square().sum(0).sqrt()
     return PackedSamples(ray_idx, from_march(m, t1_s, scale), delta, from_march(far_m, t1, scale))
 
 

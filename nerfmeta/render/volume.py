@@ -131,14 +131,50 @@ def packed_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) 
     return torch.exp(_packed_log_transmittance(tau, ray_idx, n_rays)[0]).to(tau.dtype)
 
 
-def _packed_log_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M,) float64 ``log T_i`` in front of each sample and (n_rays,) float64 per-ray sums of ``tau``."""
-    tau64 = tau.double()
-    ray_sum = tau64.new_zeros(n_rays).index_add(0, ray_idx, tau64)
+def packed_exclusive_sum(x: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-ray sums of packed values: (M,) float64 sum of the ray's *earlier* samples, (n_rays,) float64 ray totals.
+
+    One running sum in float64 minus the running sum at each ray's start (exact enough for any batch;
+    differentiable).
+
+    Args:
+        x: (M,) values, samples of a ray contiguous; ray_idx: (M,) non-decreasing ray of each sample.
+    """
+    x64 = x.double()
+    ray_sum = x64.new_zeros(n_rays).index_add(0, ray_idx, x64)
     before_ray = torch.cumsum(ray_sum, 0) - ray_sum
     # index_select, not before_ray[ray_idx]: its backward is an index_add_, not an accumulating index_put_.
-    before = (torch.cumsum(tau64, 0) - tau64 - before_ray.index_select(0, ray_idx)).clamp(min=0.0)
-    return -before, ray_sum
+    return torch.cumsum(x64, 0) - x64 - before_ray.index_select(0, ray_idx), ray_sum
+
+
+def _packed_log_transmittance(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M,) float64 ``log T_i`` in front of each sample and (n_rays,) float64 per-ray sums of ``tau``."""
+    before, ray_sum = packed_exclusive_sum(tau, ray_idx, n_rays)
+    return -before.clamp(min=0.0), ray_sum
+
+
+def packed_distortion(weights: torch.Tensor, s: torch.Tensor, ds: torch.Tensor, ray_idx: torch.Tensor,
+                      n_rays: int) -> torch.Tensor:
+    """mip-NeRF 360's distortion loss of each ray (Barron et al., CVPR 2022, eq. 15), packed, in O(M).
+
+    ``sum_{i,j} w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 ds_i``: small when a ray's weight sits in one
+    short interval, large when it is smeared along the ray (haze, floaters). With the samples of a
+    ray sorted by ``s``, the double sum is ``2 sum_i w_i (s_i W_i - S_i)``, ``W_i`` and ``S_i`` the
+    sums of ``w`` and ``w s`` over the ray's earlier samples.
+
+    Args:
+        weights: (M,) compositing weights; s: (M,) sample positions along the ray (normalised, e.g. to
+            [0, 1]), non-decreasing within a ray; ds: (M,) the intervals' lengths in the same units.
+        ray_idx: (M,) non-decreasing ray of each sample; n_rays: number of rays.
+
+    Returns:
+        (n_rays,) in the weights' dtype (0 for rays without samples).
+    """
+    w64, s64 = weights.double(), s.double()
+    w_before, _ = packed_exclusive_sum(w64, ray_idx, n_rays)
+    ws_before, _ = packed_exclusive_sum(w64 * s64, ray_idx, n_rays)
+    per_sample = 2.0 * w64 * (s64 * w_before - ws_before) + w64.square() * ds.double() / 3.0
+    return per_sample.new_zeros(n_rays).index_add(0, ray_idx, per_sample).to(weights.dtype)
 
 
 @dataclass
