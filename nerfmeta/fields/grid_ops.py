@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from nerfmeta.render.estimators import dilate, grid_points, nearest_from_coords
 
 __all__ = [
-    "ChannelsLastCopies",
+    "channels_last",
     "corner_indices_weights",
     "corners_from_coords",
     "dilate",
@@ -203,24 +203,9 @@ def interp_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return out.view(grid.shape[0], -1)
 
 
-class ChannelsLastCopies:
-    """Channels-last copies of grids for :func:`interp_coords`, kept until the grid changes.
-
-    A copy is remade when the grid's storage, shape or version counter (bumped by every in-place
-    update, e.g. an optimiser step) changes, so a cached copy is never stale.
-    """
-
-    def __init__(self) -> None:
-        self._copies: dict[str, tuple[tuple, torch.Tensor]] = {}
-
-    def get(self, name: str, grid: torch.Tensor) -> torch.Tensor:
-        """(C, X, Y, Z) ``grid`` (a view of) in channels-last memory; the same values."""
-        key = (grid.data_ptr(), tuple(grid.shape), grid._version, grid.dtype, grid.device)
-        hit = self._copies.get(name)
-        if hit is None or hit[0] != key:
-            copy = grid.detach().unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)[0]
-            hit = self._copies[name] = (key, copy)
-        return hit[1]
+def channels_last(grid: torch.Tensor) -> torch.Tensor:
+    """A (C, X, Y, Z) copy of ``grid`` (no gradient) stored channels-last: one read per corner in :func:`interp_coords`."""
+    return grid.detach().unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)[0]
 
 
 def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:

@@ -40,7 +40,8 @@ compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in 
 lookups use :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
 computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders (no
 gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
-on channels-last copies of the colour grids): the same values, about 1.7x the rays per second.
+on channels-last copies of the colour grids, made per render call): the same values, about 1.7x the rays
+per second.
 An optional distortion loss (``distortion_weight``, mip-NeRF 360) gathers each ray's weight.
 
 Defaults: DirectVoxGO's, except where a 60-second budget on a 2-core CPU asked otherwise (each
@@ -67,7 +68,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Decision, Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.grid_ops import (
-    ChannelsLastCopies,
+    channels_last,
     corners_from_coords,
     grid_coords,
     grid_points,
@@ -352,7 +353,6 @@ class VoxelGrid(RadianceModel):
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
         self.occupancy = OccupancyGrid(self.scene_bounds, box=self.box)
-        self._channels_last = ChannelsLastCopies()  # test-time copies of the colour grids
         self.level = 0
         self.fine_step0 = config.coarse_iters
         # Resolved view dependence; None ("auto") until ``decide`` measures it, the MLP on trial until then.
@@ -725,8 +725,9 @@ class VoxelGrid(RadianceModel):
 
         The embedding is the trilinear corners (indices, weights), (8, N) each, shared by the colour
         lookups. Without gradient (test-time renders) it is the corner coordinates (3, N) alone, and
-        every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (the colour grids'
-        channels-last copies cached until they change): the same values, about a third less time.
+        every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy
+        of a colour grid when the samples outnumber an eighth of its voxels): the same values, about a
+        third less time.
         """
         if self.box is not None:
             points = self.box.contract(points)
@@ -743,7 +744,9 @@ class VoxelGrid(RadianceModel):
         grid = getattr(self, name)
         if len(embedding) == 1:  # test time: corner coordinates
             x = embedding[0] if sel is None else take_columns(embedding[0], sel)
-            return interp_coords(self._channels_last.get(name, grid), x)
+            if 8 * x.shape[1] >= grid[0].numel():  # the channels-last copy costs less than it saves
+                return interp_coords(channels_last(grid), x)
+            return trilinear_gather(grid.view(grid.shape[0], -1), *corners_from_coords(x, self.size))
         idx, w = embedding
         if sel is not None:
             idx, w = take_columns(idx, sel), take_columns(w, sel)
