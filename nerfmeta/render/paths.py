@@ -20,16 +20,11 @@ import math
 
 import torch
 
-from nerfmeta.data.scene_type import axis_normal_equations
+from nerfmeta.data.scene_type import axis_normal_equations, view_directions
 from nerfmeta.render.cameras import look_at
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def viewing_directions(poses: torch.Tensor) -> torch.Tensor:
-    """(n, 3) unit directions the cameras look along (their -z axes); poses: (n, 4, 4)."""
-    return _unit(-poses[:, :3, 2])
 
 
 def mean_up(poses: torch.Tensor) -> torch.Tensor:
@@ -59,7 +54,7 @@ def look_at_centre(poses: torch.Tensor) -> torch.Tensor:
     Raises:
         ValueError: the axes are (nearly) parallel, so they share no such point.
     """
-    a, b = axis_normal_equations(poses[:, :3, 3], viewing_directions(poses))
+    a, b = axis_normal_equations(poses[:, :3, 3], view_directions(poses).to(poses.dtype))
     if float(torch.linalg.eigvalsh(a).min()) < 1e-3 * len(poses):
         raise ValueError("the cameras' optical axes are parallel: they look at no common point")
     return torch.linalg.solve(a, b)
