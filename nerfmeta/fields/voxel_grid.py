@@ -194,6 +194,10 @@ class VoxelGridConfig:
     """Learning rate of the colour MLP."""
     tv_weight: float = 0.0
     """Weight of a total-variation loss on the fine density grid (0: off)."""
+    tv_features_weight: float = 0.0
+    """Weight of a total-variation loss on the fine feature grid (diffuse logits and MLP features; 0: off; DirectVoxGO's ``weight_tv_k0``)."""
+    voxels_per_pixel: float = AUTO_VOXELS_PER_PIXEL
+    """Auto fine grid (``num_voxels`` 0): voxels per axis per pixel of the larger image side, before the clamp to 16..160 (see ``for_scene``)."""
     space: str = "auto"
     """Where the grids live: ``box`` (the scene's bounding box), ``contracted`` (an unbounded scene: an inner box around what the cameras look at at full resolution, the rest of space squashed into a shell, see :mod:`nerfmeta.render.contraction`), or ``auto``: contracted for scenes detected (or declared) unbounded, else box."""
     inner_box: tuple[float, ...] = ()
@@ -230,7 +234,9 @@ class VoxelGridConfig:
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
               for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
-            ("tv_weight", 0.0 <= self.tv_weight < math.inf, "use 0 (off) or a positive finite weight"),
+            *((name, 0.0 <= getattr(self, name) < math.inf, "use 0 (off) or a positive finite weight")
+              for name in ("tv_weight", "tv_features_weight")),
+            ("voxels_per_pixel", 0.0 < self.voxels_per_pixel < math.inf, "use a positive ratio, e.g. 0.88"),
             ("space", self.space in ("auto", "box", "contracted"), "use auto, box or contracted"),
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
              "use [] (from the cameras) or [x, y, z, half_side] with half_side > 0"),
@@ -245,8 +251,8 @@ class VoxelGridConfig:
     def for_scene(self, scene: Scene) -> "VoxelGridConfig":
         """This config with the "auto" (0) grid sizes resolved for ``scene``.
 
-        Rule: the fine grid gets ``n^3`` voxels with ``n = 0.88 * max(height, width)`` clamped to
-        16..160, about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
+        Rule: the fine grid gets ``n^3`` voxels with ``n = voxels_per_pixel * max(height, width)`` clamped to
+        16..160; the default 0.88 is about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
         views, 28^3 for 32x32, and DirectVoxGO's 160^3 from 182x182 up, e.g. 800x800). The
         coarse grid gets ``(n / 2)^3`` voxels (at least 16^3). Sizes given explicitly are kept.
 
@@ -255,7 +261,7 @@ class VoxelGridConfig:
         (:func:`~nerfmeta.render.contraction.inner_box_from_cameras`: centred on the point nearest
         every optical axis, just holding every camera).
         """
-        side = round(AUTO_VOXELS_PER_PIXEL * max(scene.height, scene.width))
+        side = round(self.voxels_per_pixel * max(scene.height, scene.width))
         side = min(AUTO_MAX_SIDE, max(AUTO_MIN_SIDE, side))
         num = self.num_voxels or side**3
         coarse = self.coarse_num_voxels or max(AUTO_MIN_SIDE, round(AUTO_COARSE_RATIO * side)) ** 3
@@ -522,10 +528,14 @@ class VoxelGrid(RadianceModel):
         return groups
 
     def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
-        """``mse``, plus ``tv`` (``tv_weight`` times the fine density's total variation) when ``tv_weight > 0``."""
+        """``mse``, plus in the fine stage ``tv`` (``tv_weight`` times the density grid's total variation) and
+        ``tv_features`` (``tv_features_weight`` times the feature grid's), each when its weight is positive."""
         terms = super().loss_terms(out, target)
-        if self.config.tv_weight > 0 and self.stage == "fine":
-            terms["tv"] = self.config.tv_weight * total_variation(self.density)
+        if self.stage == "fine":
+            for name, weight, grid in (("tv", self.config.tv_weight, self.density),
+                                       ("tv_features", self.config.tv_features_weight, self.features)):
+                if weight > 0:
+                    terms[name] = weight * total_variation(grid)
         return terms
 
     # ----- schedule ----------------------------------------------------------------------------
