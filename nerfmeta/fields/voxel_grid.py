@@ -119,14 +119,24 @@ GRID_META_HINTS = MetaHints(
 empty-space skipping) so its parameter set never changes."""
 
 
-FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0}
-"""Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them). Every ray ends on
-something (no blank background), so the coarse grid starts a third opaque along a ray (alpha 1e-2 a
-step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50 coarse steps
-find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config (half the samples).
-One exploratory 40 s fit each on the generated forward scene (loaded machine): 20.5 dB with these, 20.4
-with the object defaults, 17.8 without a coarse stage (DirectVoxGO's LLFF choice: its fine stage is too
-slow a start on 2 CPU cores)."""
+FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0,
+                                    "voxels_per_pixel": 0.25, "lr_density": 0.3}
+"""Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them).
+
+- ``voxels_per_pixel`` 0.25 (DirectVoxGO's LLFF ratio: 256^3 voxels for 1008-pixel-wide images; 40^3 at
+  160 x 120 instead of 141^3). NDC's x and y are image coordinates, so a grid about as fine as the pixels
+  is finer than the parallax a capture's few centimetres give: with it the fit painted each training view
+  onto fog in front of everything (expected depth 1.25 world units where the nearest object is at 1.6 and
+  the wall at 16) and scored 20.9 dB on held-out views; at 0.25 it drew the wall where it is and scored
+  27-29 dB (ranking runs, BENCHMARKS.md #16 session 6). 0.19 and 0.375 did about as well on one layout,
+  0.375 2 dB worse on the other.
+- ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on the second generated layout.
+- Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
+  (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
+  coarse steps find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config.
+
+Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1: no change, 1.0: worse)
+and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
 @dataclass(frozen=True)
