@@ -45,7 +45,8 @@ def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: i
     """One fit in a fresh process; its summary plus the load average before it."""
     load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch",
-           "--time-budget", f"{args.budget:g}", "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
+           *(["--iters", str(args.iters)] if args.iters else ["--time-budget", f"{args.budget:g}"]),
+           "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
            *ARMS[arm], *sum((["--set", s] for s in args.set), []),
            *(sum((["--set", s] for s in args.ndc_set), []) if arm == "ndc" else [])]
     with open(out.with_suffix(".log"), "w") as log:
@@ -72,6 +73,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--budget", type=float, default=60.0)
+    parser.add_argument("--iters", type=int, default=0,
+                        help="stop every fit after this many steps instead of --budget seconds (0: the budget); a fit "
+                             "stopped by steps is deterministic for its seed, so the PSNRs do not depend on the load")
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--layout-seed", type=int, default=0, help="the scene's object layout (0: the fixed one)")
@@ -103,11 +107,12 @@ def main() -> int:
                 print(f"{arm} seed {k}: {r['test_psnr']:.2f} dB, {r['iters']} iters, {r['samples_per_ray']:.1f} samples/ray, "
                       f"{r['rays_per_s']:.0f} rays/s rendering, load before {r['load']}", flush=True)
     print(f"\nscene: {layout}")
-    print(f"{args.reps} runs per arm, interleaved; {args.width} x {args.height}; budget {args.budget:g} s; "
+    print(f"{args.reps} runs per arm, interleaved; {args.width} x {args.height}; "
+          f"{f'{args.iters} steps' if args.iters else f'budget {args.budget:g} s'}; "
           f"{datetime.date.today().isoformat()}; load average now {' / '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
     print("| figure | " + " | ".join(f"{a} median (min-max)" for a in ARMS) + " |")
     print("|---|" + "---|" * len(ARMS))
-    for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0),
+    for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0), ("time_s", "fit seconds", 1),
                                ("samples_per_ray", "samples per ray (test)", 1), ("rays_per_s", "test rendering (rays/s)", 0),
                                ("peak_rss_mb", "peak RSS (MB)", 0)):
         cells = []
