@@ -130,7 +130,7 @@ FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-
   the wall at 16) and scored 20.9 dB on held-out views; at 0.25 it drew the wall where it is and scored
   27-29 dB (ranking runs, BENCHMARKS.md #16 session 6). 0.19 and 0.375 did about as well on one layout,
   0.375 2 dB worse on the other.
-- ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on the second generated layout.
+- ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on both generated layouts.
 - Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
   (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
   coarse steps find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config.
