@@ -12,7 +12,8 @@ fresh process. After each fit the test views are rendered again from its checkpo
 Usage::
 
     flock /work/wt/bench.lock .venv/bin/python scripts/bench_forward.py [--reps 3] [--budget 60]
-        [--width 160 --height 120] [--keep DIR] [--set KEY=VALUE ...]
+        [--width 160 --height 120] [--layout-seed 0 --scene-seed 0 --wall-distance 16 --grid 5 4 --spacing 0.15]
+        [--keep DIR] [--set KEY=VALUE ...] [--ndc-set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: i
     """One fit in a fresh process; its summary plus the load average before it."""
     load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch",
-           "--time-budget", f"{args.budget:g}", "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
+           *(["--iters", str(args.iters)] if args.iters else ["--time-budget", f"{args.budget:g}"]),
+           "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
            *ARMS[arm], *sum((["--set", s] for s in args.set), []),
            *(sum((["--set", s] for s in args.ndc_set), []) if arm == "ndc" else [])]
     with open(out.with_suffix(".log"), "w") as log:
@@ -71,8 +73,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--budget", type=float, default=60.0)
+    parser.add_argument("--iters", type=int, default=0,
+                        help="stop every fit after this many steps instead of --budget seconds (0: the budget); a fit "
+                             "stopped by steps is deterministic for its seed, so the PSNRs do not depend on the load")
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--layout-seed", type=int, default=0, help="the scene's object layout (0: the fixed one)")
+    parser.add_argument("--scene-seed", type=int, default=0, help="the scene's camera jitter seed")
+    parser.add_argument("--wall-distance", type=float, default=ForwardSceneConfig.wall_distance)
+    parser.add_argument("--grid", type=int, nargs=2, default=ForwardSceneConfig.grid, metavar=("ACROSS", "UP"))
+    parser.add_argument("--spacing", type=float, default=ForwardSceneConfig.spacing)
     parser.add_argument("--keep", type=Path, default=None, help="write each run's test renders here (PNG)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="backbone override for both arms")
     parser.add_argument("--ndc-set", action="append", default=[], metavar="KEY=VALUE",
@@ -80,7 +90,9 @@ def main() -> int:
     args = parser.parse_args()
     results: dict[str, list[dict]] = {arm: [] for arm in ARMS}
     with tempfile.TemporaryDirectory(prefix="bench_forward_") as tmp:
-        scene = make_forward_scene(Path(tmp) / "scene", ForwardSceneConfig(width=args.width, height=args.height))
+        layout = ForwardSceneConfig(width=args.width, height=args.height, seed=args.scene_seed, layout_seed=args.layout_seed,
+                                    wall_distance=args.wall_distance, grid=tuple(args.grid), spacing=args.spacing)
+        scene = make_forward_scene(Path(tmp) / "scene", layout)
         for k in range(args.reps):
             for arm in ARMS:
                 run = Path(tmp) / f"{arm}{k}"
@@ -94,11 +106,13 @@ def main() -> int:
                     iio.imwrite(args.keep / f"{arm}_seed{k}.png", (strip * 255 + 0.5).astype(np.uint8))
                 print(f"{arm} seed {k}: {r['test_psnr']:.2f} dB, {r['iters']} iters, {r['samples_per_ray']:.1f} samples/ray, "
                       f"{r['rays_per_s']:.0f} rays/s rendering, load before {r['load']}", flush=True)
-    print(f"\n{args.reps} runs per arm, interleaved; {args.width} x {args.height}; budget {args.budget:g} s; "
+    print(f"\nscene: {layout}")
+    print(f"{args.reps} runs per arm, interleaved; {args.width} x {args.height}; "
+          f"{f'{args.iters} steps' if args.iters else f'budget {args.budget:g} s'}; "
           f"{datetime.date.today().isoformat()}; load average now {' / '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
     print("| figure | " + " | ".join(f"{a} median (min-max)" for a in ARMS) + " |")
     print("|---|" + "---|" * len(ARMS))
-    for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0),
+    for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0), ("time_s", "fit seconds", 1),
                                ("samples_per_ray", "samples per ray (test)", 1), ("rays_per_s", "test rendering (rays/s)", 0),
                                ("peak_rss_mb", "peak RSS (MB)", 0)):
         cells = []

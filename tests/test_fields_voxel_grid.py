@@ -324,3 +324,27 @@ def test_distortion_term_only_when_weighted_and_it_reaches_the_density(scene):
             assert grad.abs().sum() > 0
         with torch.no_grad():
             assert "distortion" not in model(rays, background=WHITE).extras  # test renders skip it
+
+
+def test_feature_tv_is_its_weight_times_the_feature_grids_total_variation():
+    """A feature grid that rises by 1 per voxel along x has total variation exactly 1/3 (x differences 1, y and
+    z differences 0): ``tv_features`` is its weight over 3; with the weight 0 there is no such term."""
+    config = VoxelGridConfig(coarse_iters=0, num_voxels=6**3, growth_steps=(), tv_features_weight=0.3)
+    model = _model(config)
+    with torch.no_grad():
+        model.features.copy_(torch.arange(model.size[0], dtype=torch.float32).view(1, -1, 1, 1).expand_as(model.features))
+    rays = RayBatch(torch.tensor([[0.0, 0.0, -2.0]]), torch.tensor([[0.0, 0.0, 1.0]]), torch.zeros(1), torch.full((1,), 4.0))
+    out = model.render(rays, background=WHITE)
+    terms = model.loss_terms(out, torch.zeros(1, 3))
+    assert set(terms) == {"mse", "tv_features"} and terms["tv_features"].item() == pytest.approx(0.1, rel=1e-6)
+    assert set(_model(dataclasses.replace(config, tv_features_weight=0.0)).loss_terms(out, torch.zeros(1, 3))) == {"mse"}
+    terms["tv_features"].backward()
+    assert model.features.grad is not None and float(model.features.grad.abs().sum()) > 0
+
+
+def test_voxels_per_pixel_sets_the_auto_grid(scene):
+    sized = dataclasses.replace(scene, images=torch.zeros(1, 100, 160, 3))
+    assert VoxelGridConfig(voxels_per_pixel=0.25).for_scene(sized).num_voxels == 40**3
+    assert VoxelGridConfig(voxels_per_pixel=0.05).for_scene(sized).num_voxels == 16**3  # the clamp still holds
+    with pytest.raises(ConfigError, match="voxels_per_pixel"):
+        VoxelGridConfig(voxels_per_pixel=0.0)

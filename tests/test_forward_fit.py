@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -85,6 +86,20 @@ def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forwar
     assert RunConfig(scene="x").model_config(forward).coarse_alpha_init == 1e-2
     assert RunConfig(scene="x", model={"coarse_iters": 7}).model_config(forward).coarse_iters == 7
     assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).coarse_iters == 100
+
+
+def test_a_forward_grid_has_a_quarter_voxel_per_pixel_and_an_object_grid_keeps_its_own(forward_scene, tiny_scene):
+    """The NDC grid is sized from the image at 0.25 voxels per pixel (DirectVoxGO's LLFF ratio), not at the
+    object grid's 0.88; an explicit count or ratio still wins."""
+    forward = fit_space(load_scene(forward_scene))
+    sized = dataclasses.replace(forward, images=torch.zeros(1, 120, 160, 3))
+    assert RunConfig(scene="x").model_config(sized).num_voxels == 40**3
+    assert RunConfig(scene="x").model_config(sized).lr_density == 0.3
+    assert RunConfig(scene="x", model={"voxels_per_pixel": 0.5}).model_config(sized).num_voxels == 80**3
+    assert RunConfig(scene="x", model={"num_voxels": 1000}).model_config(sized).num_voxels == 1000
+    obj = load_scene(tiny_scene)
+    side = round(0.88 * max(obj.height, obj.width))
+    assert RunConfig(scene="x").model_config(obj).num_voxels == max(16, min(160, side)) ** 3
 
 
 def test_a_classic_llff_folder_fits_end_to_end_in_ndc(tmp_path):

@@ -11,6 +11,7 @@ from nerfmeta.collection.forward import (
     capture_poses,
     depth_bounds,
     forward_shape,
+    layout_offsets,
     make_forward_scene,
     opengl_to_llff,
 )
@@ -74,3 +75,15 @@ def test_refuses_a_folder_with_files(tmp_path):
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="grid"):
         ForwardSceneConfig(grid=(1, 1))
+
+
+def test_layout_zero_is_the_fixed_layout_and_another_moves_the_objects_within_their_ranges():
+    fixed = forward_shape(16.0)
+    assert forward_shape(16.0, 0) == fixed and np.all(layout_offsets(0) == 0.0)
+    moved = forward_shape(16.0, 3)
+    shift = np.array([np.subtract(m.position, f.position) for m, f in zip(moved.parts[1:], fixed.parts[1:])])
+    assert np.allclose(shift, layout_offsets(3)) and np.all(np.abs(shift) <= [0.4, 0.6, 0.25]) and np.any(shift != 0.0)
+    assert moved.parts[0].position == fixed.parts[0].position  # the wall stays
+    config = ForwardSceneConfig(jitter=0.0, grid=(2, 2), layout_seed=3)
+    bounds = depth_bounds(moved, capture_poses(config))
+    assert np.all(bounds[:, 0] > 0.5) and np.all(bounds[:, 0] < bounds[:, 1])

@@ -50,6 +50,8 @@ class ForwardSceneConfig:
     """Largest random offset of each camera position along each axis, world units (LLFF captures are hand-held)."""
     seed: int = 0
     """Seed of the camera jitter."""
+    layout_seed: int = 0
+    """Seed of the objects' layout: 0 the fixed layout, any other value moves each object (up to 0.4 across, 0.6 in depth, 0.25 up) and reseeds the wall's texture."""
     supersample: int = 2
     """Anti-aliasing rays per pixel along each axis at edges (see RenderConfig)."""
 
@@ -68,23 +70,33 @@ class ForwardSceneConfig:
         return 0.5 * self.width / math.tan(0.5 * math.radians(self.fov_degrees))
 
 
-def forward_shape(wall_distance: float) -> Shape:
-    """The scene's geometry: three textured objects 1.6-3.8 units in front of the capture plane and a wall.
+def layout_offsets(layout_seed: int) -> np.ndarray:
+    """(3, 3) offsets (across, depth, up) of the sphere, box and column: zeros for layout 0, else seeded
+    uniform draws within (0.4, 0.6, 0.25)."""
+    if layout_seed == 0:
+        return np.zeros((3, 3))
+    return np.random.default_rng(layout_seed).uniform(-1.0, 1.0, (3, 3)) * np.array([0.4, 0.6, 0.25])
+
+
+def forward_shape(wall_distance: float, layout_seed: int = 0) -> Shape:
+    """The scene's geometry: three textured objects 1.6-3.8 units in front of the capture plane (1.2-4.4 with a
+    ``layout_seed``, see :func:`layout_offsets`) and a wall.
 
     The wall is wide and tall enough to fill a 120-degree view from anywhere on the capture plane; its
     texture is coarser the further it is, so it keeps about the same size in the images.
     """
     half = 2.0 * wall_distance
     wall = Part("wall", Box((half, 0.1, half)),
-                Material((0.85, 0.8, 0.7), "noise", (0.25, 0.35, 0.55), frequency=12.0 / wall_distance, seed=7),
+                Material((0.85, 0.8, 0.7), "noise", (0.25, 0.35, 0.55), frequency=12.0 / wall_distance, seed=7 + layout_seed),
                 position=(0.0, wall_distance + 0.1, 0.0))
+    moved = np.array([(-0.9, 2.6, 0.35), (0.95, 3.4, 0.3), (0.05, 1.8, -0.55)]) + layout_offsets(layout_seed)
     sphere = Part("sphere", Sphere(0.45), Material((0.9, 0.3, 0.2), "noise", (0.95, 0.85, 0.3), frequency=4.0, seed=3),
-                  position=(-0.9, 2.6, 0.35))
+                  position=tuple(moved[0].tolist()))
     box = Part("box", Box((0.35, 0.35, 0.35), rounding=0.03),
                Material((0.2, 0.5, 0.9), "checker", (0.95, 0.95, 0.95), frequency=4.0),
-               position=(0.95, 3.4, 0.3))
+               position=tuple(moved[1].tolist()))
     column = Part("column", Cylinder(0.16, 0.45), Material((0.2, 0.7, 0.3), "stripes", (0.1, 0.15, 0.1), frequency=5.0),
-                  position=(0.05, 1.8, -0.55))
+                  position=tuple(moved[2].tolist()))
     return Shape("forward", (wall, sphere, box, column))
 
 
@@ -137,7 +149,7 @@ def depth_bounds(shape: Shape, poses: torch.Tensor) -> np.ndarray:
 
 def render_forward_scene(config: ForwardSceneConfig) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     """Render the scene: images (V, H, W, 3) uint8, poses (V, 4, 4) float64, bounds (V, 2) depths."""
-    shape = forward_shape(config.wall_distance)
+    shape = forward_shape(config.wall_distance, config.layout_seed)
     poses = capture_poses(config)
     aabb = torch.tensor(shape_part_bounds(shape.parts), dtype=torch.float32)
     rgba = render_views(shape.sdf, shape.albedo, poses, config.focal, config.height, config.width,

@@ -125,14 +125,24 @@ GRID_META_HINTS = MetaHints(
 empty-space skipping) so its parameter set never changes."""
 
 
-FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0}
-"""Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them). Every ray ends on
-something (no blank background), so the coarse grid starts a third opaque along a ray (alpha 1e-2 a
-step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50 coarse steps
-find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config (half the samples).
-One exploratory 40 s fit each on the generated forward scene (loaded machine): 20.5 dB with these, 20.4
-with the object defaults, 17.8 without a coarse stage (DirectVoxGO's LLFF choice: its fine stage is too
-slow a start on 2 CPU cores)."""
+FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0,
+                                    "voxels_per_pixel": 0.25, "lr_density": 0.3}
+"""Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them).
+
+- ``voxels_per_pixel`` 0.25 (DirectVoxGO's LLFF ratio: 256^3 voxels for 1008-pixel-wide images; 40^3 at
+  160 x 120 instead of 141^3). NDC's x and y are image coordinates, so a grid about as fine as the pixels
+  is finer than the parallax a capture's few centimetres give: with it the fit painted each training view
+  onto fog in front of everything (expected depth 1.25 world units where the nearest object is at 1.6 and
+  the wall at 16) and scored 20.9 dB on held-out views; at 0.25 it drew the wall where it is and scored
+  27-29 dB (ranking runs, BENCHMARKS.md #16 session 6). 0.19 and 0.375 did about as well on one layout,
+  0.375 2 dB worse on the other.
+- ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on both generated layouts.
+- Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
+  (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
+  coarse steps find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config.
+
+Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1: no change, 1.0: worse)
+and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
 @dataclass(frozen=True)
@@ -202,6 +212,10 @@ class VoxelGridConfig:
     """Weight of a total-variation loss on the fine density grid (0: off)."""
     distortion_weight: float = 0.0
     """Weight of mip-NeRF 360's distortion loss on every training ray's weights (0: off): it gathers a ray's weight into one short interval, against haze and floaters (DirectVoxGO v2 uses 0.01 on unbounded scenes). Positions along a ray are normalised to [0, 1]: marching distance in a contracted space (even steps in the contracted cube), distance over the ray's far end in a box."""
+    tv_features_weight: float = 0.0
+    """Weight of a total-variation loss on the fine feature grid (diffuse logits and MLP features; 0: off; DirectVoxGO's ``weight_tv_k0``)."""
+    voxels_per_pixel: float = AUTO_VOXELS_PER_PIXEL
+    """Auto fine grid (``num_voxels`` 0): voxels per axis per pixel of the larger image side, before the clamp to 16..160 (see ``for_scene``)."""
     space: str = "auto"
     """Where the grids live: ``box`` (the scene's bounding box), ``contracted`` (an unbounded scene: an inner box around what the cameras look at at full resolution, the rest of space squashed into a shell, see :mod:`nerfmeta.render.contraction`), or ``auto``: contracted for scenes detected (or declared) unbounded, else box."""
     inner_box: tuple[float, ...] = ()
@@ -238,7 +252,9 @@ class VoxelGridConfig:
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
               for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
-            ("tv_weight", 0.0 <= self.tv_weight < math.inf, "use 0 (off) or a positive finite weight"),
+            *((name, 0.0 <= getattr(self, name) < math.inf, "use 0 (off) or a positive finite weight")
+              for name in ("tv_weight", "tv_features_weight")),
+            ("voxels_per_pixel", 0.0 < self.voxels_per_pixel < math.inf, "use a positive ratio, e.g. 0.88"),
             ("distortion_weight", 0.0 <= self.distortion_weight < math.inf, "use 0 (off) or a positive finite weight"),
             ("space", self.space in ("auto", "box", "contracted"), "use auto, box or contracted"),
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
@@ -254,8 +270,8 @@ class VoxelGridConfig:
     def for_scene(self, scene: Scene) -> "VoxelGridConfig":
         """This config with the "auto" (0) grid sizes resolved for ``scene``.
 
-        Rule: the fine grid gets ``n^3`` voxels with ``n = 0.88 * max(height, width)`` clamped to
-        16..160, about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
+        Rule: the fine grid gets ``n^3`` voxels with ``n = voxels_per_pixel * max(height, width)`` clamped to
+        16..160; the default 0.88 is about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
         views, 28^3 for 32x32, and DirectVoxGO's 160^3 from 182x182 up, e.g. 800x800). The
         coarse grid gets ``(n / 2)^3`` voxels (at least 16^3). Sizes given explicitly are kept.
 
@@ -264,7 +280,7 @@ class VoxelGridConfig:
         (:func:`~nerfmeta.render.contraction.inner_box_from_cameras`: centred on the point nearest
         every optical axis, just holding every camera).
         """
-        side = round(AUTO_VOXELS_PER_PIXEL * max(scene.height, scene.width))
+        side = round(self.voxels_per_pixel * max(scene.height, scene.width))
         side = min(AUTO_MAX_SIDE, max(AUTO_MIN_SIDE, side))
         num = self.num_voxels or side**3
         coarse = self.coarse_num_voxels or max(AUTO_MIN_SIDE, round(AUTO_COARSE_RATIO * side)) ** 3
@@ -531,10 +547,15 @@ class VoxelGrid(RadianceModel):
         return groups
 
     def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
-        """``mse``, plus ``tv`` (``tv_weight`` times the fine density's total variation) when ``tv_weight > 0``."""
+        """``mse``, plus in the fine stage ``tv`` (``tv_weight`` times the density grid's total variation) and
+        ``tv_features`` (``tv_features_weight`` times the feature grid's), each when its weight is positive;
+        ``distortion`` (``distortion_weight`` times the batch's mean distortion) in either stage."""
         terms = super().loss_terms(out, target)
-        if self.config.tv_weight > 0 and self.stage == "fine":
-            terms["tv"] = self.config.tv_weight * total_variation(self.density)
+        if self.stage == "fine":
+            for name, weight, grid in (("tv", self.config.tv_weight, self.density),
+                                       ("tv_features", self.config.tv_features_weight, self.features)):
+                if weight > 0:
+                    terms[name] = weight * total_variation(grid)
         if "distortion" in out.extras:
             terms["distortion"] = self.config.distortion_weight * out.extras["distortion"].mean()
         return terms
