@@ -125,7 +125,8 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     for record in (coll.by_split(split) if split else coll.scenes):
         views = read_scene_views(coll.scene_path(record), size=meta.input_size, background=meta.background)
         features, logits = view_outputs(clf.model, model_inputs(views, meta), mirror=meta.mirror_views)
-        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
+                     "views": int(views.shape[0])})
     return judge(rows, meta.categories, meta.score, meta.thresholds, clf.stats)
 
 
@@ -290,7 +291,8 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     for record in fresh_coll.scenes:
         v = read_scene_views(fresh_coll.scene_path(record), size=clf.meta.input_size, background=clf.meta.background)
         features, logits = view_outputs(clf.model, model_inputs(v, clf.meta), mirror=config.mirror_views)
-        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
+                     "views": int(v.shape[0])})
     saved = {"categories": list(splits.categories), "inputs": dict(vars(inputs)), "fresh": rows}
     tmp = cache.with_suffix(".tmp")
     torch.save(saved, tmp)
@@ -309,7 +311,7 @@ def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds:
     for r in rows:
         pred = decide(r["logits"], r["features"], categories, score, thresholds[score], stats)
         out_rows.append({"scene": r["scene"], "category": r["category"], "known": r["category"] in categories,
-                         "predicted": pred.category, "unknown": pred.unknown, "views": pred.views,
+                         "predicted": pred.category, "unknown": pred.unknown, "views": r.get("views", pred.views),
                          "scores": scene_scores(r["logits"], r["features"], stats)})
     known = [r for r in out_rows if r["known"]]
     held = [r for r in out_rows if not r["known"]]
@@ -390,7 +392,7 @@ def fresh_section_text(runs: list[dict], heading: str, command: str, train_args:
         f"`nerfmeta classifier train` with its defaults (held out: {','.join(doc['holdout_categories'])}) on "
         f"`make-collection {' '.join(train_args)}`; judged on **every** scene of a fresh collection, "
         f"`make-collection {' '.join(fresh_args)}` (another seed and other view counts; each scene classified from all "
-        f"its {'/'.join(map(str, result['views_per_scene']))} views as `nerfmeta classify` does): "
+        f"its {'/'.join(map(str, result['views_per_scene']))} views, and their mirror images, as `nerfmeta classify` does): "
         f"{result['known_scenes']} scenes of the known categories, {result['holdout_scenes']} of the held-out ones. "
         f"Trained {n} time{'s' if n > 1 else ''} (training seeds {', '.join(str(r['train_seed']) for r in runs)}); "
         "the targets are judged on the median over the runs (min-max in brackets). *Before* is the same network "
