@@ -27,6 +27,9 @@ SCORES = ("msp", "energy", "mahalanobis", "class_mahalanobis", "combined")
 DEFAULT_SCORE = "combined"
 """The score ``auto`` falls back to with too few held-out validation scenes (best fresh-scene AUROC on the design runs: 0.984 against 0.94-0.97)."""
 
+CLASS_SCALE_PRIORS = ("train", "pooled")
+"""What each class's ``class_mahalanobis`` scale is shrunk towards; see :func:`classifier.predict.fit_class_scale`."""
+
 THRESHOLD_RULES = ("quantile", "margin")
 """How the unknown threshold is drawn from the known validation scores; see :func:`classifier.predict.calibrate_threshold`."""
 
@@ -44,7 +47,7 @@ class CalibrationNeeds:
     training scenes each, 24 views) the plain quantile threshold flagged no known test scene of the
     training collection's seed; with 12 (2 validation and 7 training scenes) it flagged 7 of 18
     fresh known scenes (issue 14). The needs sit between the two; BENCHMARKS.md has the current
-    rule's figures at 12 scenes per category (one validation scene each): 94 % kept, 83 % flagged.
+    rule's figures at 12 scenes per category (one validation scene each): 92 % kept, 83 % flagged.
     """
 
     val_scenes_per_category: int = 5
@@ -148,6 +151,10 @@ class TrainConfig:
     """Threshold calibrated so that this fraction of the known validation scenes (and of new ones, by ``threshold_rule``) is not flagged unknown."""
     threshold_rule: str = "quantile"
     """``quantile``: the plain quantile of the known validation scores (leave-one-out for the class scores); ``margin``: the lower of it and a Student-t prediction bound (flags almost nothing with few scenes)."""
+    class_scale_prior: str = "train"
+    """``train``: each class's scale is shrunk towards its training scenes' leave-one-out spread, inflated to the validation scenes; ``pooled``: towards one pooled scale (the rule before)."""
+    mirror_views: bool = True
+    """Also classify every view mirrored left-right (one more view of the scene, as training's flips show it), for calibration and prediction alike."""
     scale_prior_scenes: float | None = None
     """Weight, in scenes, of the pooled scale in each class's ``class_mahalanobis`` scale; None: chosen by leave-one-out on the validation scenes."""
     stats_views: int = 50
@@ -185,6 +192,8 @@ class TrainConfig:
             raise ConfigError(f"--time-budget must be > 0 seconds, got {self.time_budget_s}")
         if not 0.5 <= self.keep_fraction <= 1.0:
             raise ConfigError(f"--keep-fraction must be in [0.5, 1], got {self.keep_fraction}")
+        if self.class_scale_prior not in CLASS_SCALE_PRIORS:
+            raise ConfigError(f"--class-scale-prior {self.class_scale_prior!r}: expected one of {', '.join(CLASS_SCALE_PRIORS)}")
         if self.threshold_rule not in THRESHOLD_RULES:
             raise ConfigError(f"--threshold-rule {self.threshold_rule!r}: expected one of {', '.join(THRESHOLD_RULES)}")
         if self.scale_prior_scenes is not None and not (math.isfinite(self.scale_prior_scenes) and self.scale_prior_scenes >= 0):

@@ -52,6 +52,10 @@ class FeatureStats:
             ``class_mahalanobis``; None in classifiers saved before it existed.
         score_norm: (4,) mean and standard deviation of ``energy`` and of ``class_mahalanobis`` over the
             known validation scenes (:func:`fit_score_norm`), needed by ``combined``; None before it existed.
+        train_scale: (n_classes,) mean leave-one-out squared distance of each class's training scenes to
+            their class mean (:func:`training_class_scale`): which classes are broad, read off many
+            scenes; calibration scales it to the validation scenes (:func:`fit_class_scale`). None in
+            classifiers saved before it existed.
     """
 
     means: torch.Tensor
@@ -60,6 +64,7 @@ class FeatureStats:
     reference_views: torch.Tensor
     class_scale: torch.Tensor | None = None
     score_norm: torch.Tensor | None = None
+    train_scale: torch.Tensor | None = None
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -148,14 +153,18 @@ def class_mahalanobis_from_distances(distances: torch.Tensor, class_scale: torch
 
 
 def fit_class_scale(
-    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0,
+    train_scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Each class's typical squared distance, shrunk towards the pooled one.
+    """Each class's typical squared distance, shrunk towards a prior scale.
 
-    With ``S`` the mean own-class distance over all the scenes given (pooled), class ``c`` with
-    ``n_c`` scenes gets ``(sum of its own distances + prior_scenes * S) / (n_c + prior_scenes)``:
-    the pooled scale counts as ``prior_scenes`` extra scenes. ``prior_scenes = 0`` is the plain
-    per-class mean (a class with no scene then gets the mean of the other classes' scales), and a
+    The prior of class ``c`` is ``S_c = t_c * mean_i(d_i / t_{y_i})``, ``d_i`` the own-class distance
+    of scene ``i``: the training scenes' per-class scale ``t`` (``train_scale``; which classes are
+    broad), inflated by how much farther the given scenes lie than the training scenes do on average.
+    Without ``train_scale`` (``t = 1``) it is the pooled mean distance. Class ``c`` with ``n_c`` scenes
+    gets ``(sum of its own distances + prior_scenes * S_c) / (n_c + prior_scenes)``: the prior counts
+    as ``prior_scenes`` extra scenes. ``prior_scenes = 0`` is the plain per-class mean (a class with no
+    scene then gets ``S_c``, or without ``train_scale`` the mean of the other classes' scales), and a
     class seen in two scenes that happen to lie close to its mean no longer gets a scale so small
     that every new scene of it is flagged.
 
@@ -163,7 +172,8 @@ def fit_class_scale(
         distances: (n_scenes, n_classes) squared distances of validation scenes to each class mean.
         labels: (n_scenes,) the class of each scene.
         n_classes: number of classes.
-        prior_scenes: weight of the pooled scale, in scenes, >= 0.
+        prior_scenes: weight of the prior scale, in scenes, >= 0.
+        train_scale: (n_classes,) positive per-class scale of the training scenes, or None (pooled prior).
 
     Returns:
         (n_classes,) positive float64 scales.
@@ -175,16 +185,49 @@ def fit_class_scale(
     own = distances.double()[torch.arange(distances.shape[0]), labels]
     sums = torch.zeros(n_classes, dtype=torch.float64).index_add_(0, labels, own)
     counts = torch.bincount(labels, minlength=n_classes).double()
+    shape = torch.ones(n_classes, dtype=torch.float64) if train_scale is None else train_scale.double().clamp_min(1e-12)
+    prior = shape * (own / shape[labels]).mean()
     if prior_scenes > 0.0:
-        scale = (sums + prior_scenes * own.mean()) / (counts + prior_scenes)
+        scale = (sums + prior_scenes * prior) / (counts + prior_scenes)
     else:
         scale = sums / counts.clamp_min(1)
-        scale = torch.where(counts > 0, scale, scale[counts > 0].mean())
+        fallback = scale[counts > 0].mean() if train_scale is None else prior
+        scale = torch.where(counts > 0, scale, fallback)
     return scale.clamp_min(1e-12)
 
 
+def training_class_scale(scene_means: torch.Tensor, scene_labels: torch.Tensor, precision: torch.Tensor, n_classes: int) -> torch.Tensor:
+    """Per class, the mean squared distance of its training scenes to the mean of its *other* training scenes.
+
+    Leaving scene ``i`` of a class of ``n`` scenes out of the class mean moves the mean away from it:
+    ``m_i - mean_without_i = n / (n - 1) * (m_i - mean)``, so its distance is ``(n / (n - 1))^2`` times
+    the in-sample one. A class with fewer than two scenes gets the mean of the other classes (1 if none has two).
+
+    Args:
+        scene_means: (n_scenes, dim) mean feature of each training scene.
+        scene_labels: (n_scenes,) class of each.
+        precision: (dim, dim) inverse scene-mean covariance.
+        n_classes: number of classes.
+
+    Returns:
+        (n_classes,) positive float64 scales.
+    """
+    m = scene_means.double()
+    counts = torch.bincount(scene_labels, minlength=n_classes).double()
+    means = torch.zeros(n_classes, m.shape[1], dtype=torch.float64).index_add_(0, scene_labels, m) / counts.clamp_min(1)[:, None]
+    dev = m - means[scene_labels]
+    n = counts[scene_labels]
+    d = torch.einsum("nd,de,ne->n", dev, precision.double(), dev) * (n / (n - 1).clamp_min(1)) ** 2
+    sums = torch.zeros(n_classes, dtype=torch.float64).index_add_(0, scene_labels, d)
+    ok = counts >= 2
+    scale = sums / counts.clamp_min(1)
+    fallback = scale[ok].mean() if bool(ok.any()) else torch.tensor(1.0, dtype=torch.float64)
+    return torch.where(ok, scale, fallback).clamp_min(1e-12)
+
+
 def leave_one_out_scales(
-    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0,
+    train_scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Row ``i``: :func:`fit_class_scale` of all the scenes but scene ``i`` (its pooled share left out too).
 
@@ -192,7 +235,7 @@ def leave_one_out_scales(
         distances: (n_scenes, n_classes), n_scenes >= 2.
         labels: (n_scenes,).
         n_classes: number of classes.
-        prior_scenes: as in :func:`fit_class_scale`.
+        prior_scenes, train_scale: as in :func:`fit_class_scale`.
 
     Returns:
         (n_scenes, n_classes) float64 scales.
@@ -201,11 +244,13 @@ def leave_one_out_scales(
     if n < 2:
         raise ValueError("leave-one-out scales need at least two known validation scenes")
     keep = ~torch.eye(n, dtype=torch.bool)
-    return torch.stack([fit_class_scale(distances[keep[i]], labels[keep[i]], n_classes, prior_scenes) for i in range(n)])
+    return torch.stack([fit_class_scale(distances[keep[i]], labels[keep[i]], n_classes, prior_scenes, train_scale)
+                        for i in range(n)])
 
 
 def leave_one_out_class_scores(
-    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float = 0.0,
+    train_scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``class_mahalanobis`` of the scenes the scale is fitted on, each scored by scales fitted without it.
 
@@ -218,15 +263,18 @@ def leave_one_out_class_scores(
         distances: (n_scenes, n_classes) distances of the known validation scenes, n_scenes >= 2.
         labels: (n_scenes,) their classes.
         n_classes: number of classes.
-        prior_scenes: as in :func:`fit_class_scale`.
+        prior_scenes, train_scale: as in :func:`fit_class_scale`.
 
     Returns:
         (n_scenes,) float64 scores.
     """
-    return class_mahalanobis_from_distances(distances.double(), leave_one_out_scales(distances, labels, n_classes, prior_scenes))
+    scales = leave_one_out_scales(distances, labels, n_classes, prior_scenes, train_scale)
+    return class_mahalanobis_from_distances(distances.double(), scales)
 
 
-def scale_prior_loss(distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float) -> float:
+def scale_prior_loss(
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, prior_scenes: float, train_scale: torch.Tensor | None = None
+) -> float:
     """Mean leave-one-out negative log-likelihood of the own-class distances, ``log s + d / s``.
 
     Each scene's distance ``d`` to its own class is scored by its class's scale ``s`` fitted
@@ -237,16 +285,16 @@ def scale_prior_loss(distances: torch.Tensor, labels: torch.Tensor, n_classes: i
         distances: (n_scenes, n_classes), n_scenes >= 2.
         labels: (n_scenes,).
         n_classes: number of classes.
-        prior_scenes: as in :func:`fit_class_scale`.
+        prior_scenes, train_scale: as in :func:`fit_class_scale`.
     """
     rows = torch.arange(distances.shape[0])
     own = distances.double()[rows, labels].clamp_min(1e-12)
-    s = leave_one_out_scales(distances, labels, n_classes, prior_scenes)[rows, labels]
+    s = leave_one_out_scales(distances, labels, n_classes, prior_scenes, train_scale)[rows, labels]
     return float((torch.log(s) + own / s).mean())
 
 
 def select_scale_prior(
-    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, grid: tuple[float, ...]
+    distances: torch.Tensor, labels: torch.Tensor, n_classes: int, grid: tuple[float, ...], train_scale: torch.Tensor | None = None
 ) -> float:
     """The prior of ``grid`` with the smallest :func:`scale_prior_loss` (ties: the larger prior, the safer one).
 
@@ -255,8 +303,9 @@ def select_scale_prior(
         labels: (n_scenes,).
         n_classes: number of classes.
         grid: candidate priors, in scenes (each >= 0).
+        train_scale: as in :func:`fit_class_scale`.
     """
-    losses = {k: scale_prior_loss(distances, labels, n_classes, k) for k in grid}
+    losses = {k: scale_prior_loss(distances, labels, n_classes, k, train_scale) for k in grid}
     best = min(losses.values())
     return max(k for k, v in losses.items() if v <= best + 1e-12)
 
@@ -415,11 +464,13 @@ def fit_feature_stats(
     scene_dev = scene_means - means[scene_labels]
     between = scene_dev.T @ scene_dev / max(1, n_scenes - n_classes)
     reference = n_scenes / float((1.0 / counts.double()).sum())
+    between = _shrink(between, shrinkage).float()
     return FeatureStats(
         means=means.float(),
-        between=_shrink(between, shrinkage).float(),
+        between=between,
         within=_shrink(within, shrinkage).float(),
         reference_views=torch.tensor(reference, dtype=torch.float32),
+        train_scale=training_class_scale(scene_means, scene_labels, torch.linalg.inv(between.double()), n_classes).float(),
     )
 
 

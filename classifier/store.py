@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -74,6 +74,8 @@ class ClassifierMeta:
     """Scenes whose score is below this are unknown."""
     thresholds: dict[str, float] = field(default_factory=dict)
     """Calibrated threshold of every score (same keep fraction), for comparisons."""
+    mirror_views: bool = False
+    """Each view is also classified mirrored left-right (False in folders written before it existed)."""
 
 
 @dataclass(frozen=True)
@@ -98,8 +100,14 @@ def model_inputs(views: torch.Tensor, meta: ClassifierMeta) -> torch.Tensor:
 
 
 @torch.no_grad()
-def view_outputs(model: SceneNet, inputs: torch.Tensor, batch_size: int = 128) -> tuple[torch.Tensor, torch.Tensor]:
-    """Features (n, dim) and logits (n, n_classes) of normalised inputs (n, 3, S, S), in eval mode."""
+def view_outputs(model: SceneNet, inputs: torch.Tensor, batch_size: int = 128, *, mirror: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Features (m, dim) and logits (m, n_classes) of normalised inputs (n, 3, S, S), in eval mode.
+
+    ``mirror``: the inputs mirrored left-right follow them as more views, ``m = 2n`` (rows ``n + i`` are input ``i``
+    mirrored); otherwise ``m = n``.
+    """
+    if mirror:
+        inputs = torch.cat([inputs, inputs.flip(-1)])
     was_training = model.training
     model.eval()
     device = next(model.parameters()).device
@@ -124,8 +132,9 @@ def classify_views(classifier: Classifier, views: torch.Tensor) -> Prediction:
     meta = classifier.meta
     if views.dim() != 4 or views.shape[1] != 4 or tuple(views.shape[-2:]) != (meta.input_size, meta.input_size):
         raise ValueError(f"views must be (n, 4, {meta.input_size}, {meta.input_size}), got {tuple(views.shape)}")
-    features, logits = view_outputs(classifier.model, model_inputs(views, meta))
-    return decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats)
+    features, logits = view_outputs(classifier.model, model_inputs(views, meta), mirror=meta.mirror_views)
+    prediction = decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats)
+    return replace(prediction, views=int(views.shape[0]))  # the views given, mirrored ones not counted
 
 
 # --- saving ------------------------------------------------------------------------------------
@@ -139,8 +148,9 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
     tensors[STATS_PREFIX + "reference_views"] = stats.reference_views
     if stats.class_scale is not None:
         tensors[STATS_PREFIX + "class_scale"] = stats.class_scale
-    if stats.score_norm is not None:
-        tensors[STATS_PREFIX + "score_norm"] = stats.score_norm
+    for name in ("score_norm", "train_scale"):
+        if getattr(stats, name) is not None:
+            tensors[STATS_PREFIX + name] = getattr(stats, name)
     return tensors
 
 
@@ -176,6 +186,7 @@ def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: di
             "size": meta.input_size,
             "background": list(meta.background),
             "normalization": {"mean": list(meta.mean), "std": list(meta.std)},
+            "mirror_views": meta.mirror_views,
         },
         "unknown": {"score": meta.score, "threshold": meta.threshold, "thresholds": dict(meta.thresholds)},
         "weights": {"file": WEIGHTS_FILE, "sha256": sha256_file(weights), "dtype": str(weights_dtype).removeprefix("torch.")},
@@ -248,7 +259,10 @@ def read_meta(folder: str | os.PathLike) -> tuple[ClassifierMeta, dict[str, Any]
             score=unknown["score"],
             threshold=float(threshold),
             thresholds=thresholds or {unknown["score"]: float(threshold)},
+            mirror_views=inp.get("mirror_views", False),
         )
+        if not isinstance(meta.mirror_views, bool):
+            raise ClassifierError(f"{path}: input.mirror_views must be true or false, got {meta.mirror_views!r}")
         if not isinstance(doc["weights"]["sha256"], str):
             raise ClassifierError(f"{path}: weights.sha256 must be a string")
     except (KeyError, TypeError, ValueError) as err:
@@ -297,7 +311,8 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
     model.load_state_dict(state, assign=True)
     try:
         stats = FeatureStats(*(tensors[STATS_PREFIX + k] for k in ("means", "between", "within", "reference_views")),
-                             class_scale=tensors.get(STATS_PREFIX + "class_scale"), score_norm=tensors.get(STATS_PREFIX + "score_norm"))
+                             class_scale=tensors.get(STATS_PREFIX + "class_scale"), score_norm=tensors.get(STATS_PREFIX + "score_norm"),
+                             train_scale=tensors.get(STATS_PREFIX + "train_scale"))
     except KeyError:
         raise ClassifierError(f"{weights}: feature statistics missing ({STATS_PREFIX}means/between/within/reference_views)") from None
     dim = model.feature_dim

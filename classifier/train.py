@@ -147,8 +147,12 @@ def lr_factor(progress: float, warmup: float) -> float:
 def scene_outputs(model: SceneNet, views: ViewSet, meta: ClassifierMeta) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Per scene of ``views``: (features (n_views, dim), logits (n_views, n_classes)), no augmentation."""
     inputs = model_inputs(views.float_views(slice(None)), meta)
-    features, logits = view_outputs(model, inputs)
-    return [(features[idx], logits[idx]) for idx in (views.scene_views(k) for k in range(len(views.scenes)))]
+    features, logits = view_outputs(model, inputs, mirror=meta.mirror_views)
+    n = len(views)
+    rows = [views.scene_views(k) for k in range(len(views.scenes))]
+    if meta.mirror_views:  # a view's mirror image is the row n further down
+        rows = [torch.cat([idx, idx + n]) for idx in rows]
+    return [(features[idx], logits[idx]) for idx in rows]
 
 
 def scene_accuracy(outputs: list[tuple[torch.Tensor, torch.Tensor]], views: ViewSet) -> float:
@@ -163,7 +167,7 @@ def _meta(config: TrainConfig, categories: tuple[str, ...], score: str = "msp", 
     return ClassifierMeta(
         categories=categories, arch=config.arch, stem=config.stem,
         input_size=config.input_size, background=config.background, mean=config.mean, std=config.std,
-        score=score, threshold=float(thresholds.get(score, 0.0)), thresholds=dict(thresholds),
+        score=score, threshold=float(thresholds.get(score, 0.0)), thresholds=dict(thresholds), mirror_views=config.mirror_views,
     )
 
 
@@ -187,7 +191,7 @@ def fit_network(
     device = torch.device(config.device)
     model.to(device).train()
     generator = torch.Generator().manual_seed(config.seed)
-    meta = _meta(config, tuple(str(i) for i in range(model.num_classes)))
+    meta = replace(_meta(config, tuple(str(i) for i in range(model.num_classes))), mirror_views=False)  # the monitor: plain views
     decay, no_decay = [], []
     for p in model.parameters():
         (no_decay if p.dim() == 1 else decay).append(p)  # no weight decay on BatchNorm and biases
@@ -295,11 +299,12 @@ def calibration_inputs(
     the validation scenes (no augmentation)."""
     meta = _meta(config, categories)
     sample = train.subset(config.stats_views)
-    features, logits = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta))
+    features, logits = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta), mirror=config.mirror_views)
+    copies = 2 if config.mirror_views else 1  # mirrored views follow, in the same order
     val_out = scene_outputs(model, val, meta)
     labels = torch.tensor([int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))], dtype=torch.long)
     held = scene_outputs(model, holdout_val, meta) if len(holdout_val.scenes) else []
-    return CalibrationInputs(features, logits, sample.labels.clone(), sample.scene_index.clone(), val_out, labels, held)
+    return CalibrationInputs(features, logits, sample.labels.repeat(copies), sample.scene_index.repeat(copies), val_out, labels, held)
 
 
 def calibrate(
@@ -336,16 +341,17 @@ def calibrate_inputs(
     y = data.val_labels
     labels = y.tolist()
     distances = torch.stack([scene_distances(f, stats) for f, _ in data.val])
+    shape = stats.train_scale if config.class_scale_prior == "train" else None
     prior, chosen_by = config.scale_prior_scenes, "given"
     if prior is None:
         prior, chosen_by = SCALE_PRIOR_GRID[0], "smallest of the grid (one validation scene: nothing to choose on)"
         if len(labels) >= 2:
-            prior = select_scale_prior(distances, y, n_classes, SCALE_PRIOR_GRID)
+            prior = select_scale_prior(distances, y, n_classes, SCALE_PRIOR_GRID, shape)
             chosen_by = "leave-one-out likelihood of the validation distances"
-    stats = replace(stats, class_scale=fit_class_scale(distances, y, n_classes, prior).float())
+    stats = replace(stats, class_scale=fit_class_scale(distances, y, n_classes, prior, shape).float())
     known = score_table(data.val, stats)
     if len(labels) >= 2:
-        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, n_classes, prior)
+        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, n_classes, prior, shape)
     stats = replace(stats, score_norm=fit_score_norm(known["energy"], known["class_mahalanobis"]).float())
     known["combined"] = combined_score(known["energy"], known["class_mahalanobis"], stats.score_norm)
     thresholds, rule_notes = threshold_for_rule(data, stats, known, distances, config, prior)
@@ -355,6 +361,7 @@ def calibrate_inputs(
         "val_views": sum(int(f.shape[0]) for f, _ in data.val),
         "val_scene_accuracy": float(correct.float().mean()),
         "calibration": {"threshold_rule": config.threshold_rule, "keep_fraction": config.keep_fraction,
+                        "class_scale_prior": config.class_scale_prior, "mirror_views": config.mirror_views,
                         "scale_prior_scenes": prior, "scale_prior_chosen_by": chosen_by, **rule_notes},
         "scores": {},
     }

@@ -124,8 +124,9 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     rows = []
     for record in (coll.by_split(split) if split else coll.scenes):
         views = read_scene_views(coll.scene_path(record), size=meta.input_size, background=meta.background)
-        features, logits = view_outputs(clf.model, model_inputs(views, meta))
-        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+        features, logits = view_outputs(clf.model, model_inputs(views, meta), mirror=meta.mirror_views)
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
+                     "views": int(views.shape[0])})
     return judge(rows, meta.categories, meta.score, meta.thresholds, clf.stats)
 
 
@@ -246,26 +247,6 @@ def collection_args(scenes_per_category: int, fresh: bool) -> list[str]:
     return args
 
 
-def before_issue14_scores(distances, labels, class_scale):
-    """``class_mahalanobis`` leave-one-out scores as calibrated before issue 14: a class with one scene kept its scale.
-
-    That is, its one validation scene scored 0 (its own distance over itself), so with one validation
-    scene per category the threshold sat at the typical distance and flagged about half the new scenes.
-    """
-    import torch
-
-    from classifier.predict import class_mahalanobis_from_distances
-
-    d = distances.double()
-    own = d[torch.arange(d.shape[0]), labels]
-    counts = torch.bincount(labels, minlength=class_scale.numel()).double()[labels]
-    total = class_scale.double()[labels] * counts
-    loo = torch.where(counts > 1, (total - own) / (counts - 1).clamp_min(1), class_scale.double()[labels]).clamp_min(1e-12)
-    scales = class_scale.double().expand_as(d).clone()
-    scales[torch.arange(d.shape[0]), labels] = loo
-    return class_mahalanobis_from_distances(d, scales)
-
-
 def recipe_config(classifier_dir: Path, **changes):
     """The :class:`~classifier.config.TrainConfig` fields calibration reads, from ``classifier.json``'s recipe, with ``changes``."""
     from classifier.config import TrainConfig
@@ -294,12 +275,12 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     from classifier.train import CalibrationInputs, calibration_inputs, plan_splits
     from nerfmeta.collection.generate import load_collection
 
-    cache = classifier_dir / f"outputs_{fresh.name}.pt"
+    config = recipe_config(classifier_dir)
+    cache = classifier_dir / f"outputs_{fresh.name}{'_mirror' if config.mirror_views else ''}.pt"
     if cache.is_file():
         saved = torch.load(cache, weights_only=True)
         return {**saved, "inputs": CalibrationInputs(**saved["inputs"])}
     clf = load_classifier(classifier_dir)
-    config = recipe_config(classifier_dir)
     coll = load_collection(collection)
     splits = plan_splits(coll, config.holdout_categories)
     views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
@@ -309,8 +290,9 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     fresh_coll = load_collection(fresh)
     for record in fresh_coll.scenes:
         v = read_scene_views(fresh_coll.scene_path(record), size=clf.meta.input_size, background=clf.meta.background)
-        features, logits = view_outputs(clf.model, model_inputs(v, clf.meta))
-        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits})
+        features, logits = view_outputs(clf.model, model_inputs(v, clf.meta), mirror=config.mirror_views)
+        rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
+                     "views": int(v.shape[0])})
     saved = {"categories": list(splits.categories), "inputs": dict(vars(inputs)), "fresh": rows}
     tmp = cache.with_suffix(".tmp")
     torch.save(saved, tmp)
@@ -329,7 +311,7 @@ def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds:
     for r in rows:
         pred = decide(r["logits"], r["features"], categories, score, thresholds[score], stats)
         out_rows.append({"scene": r["scene"], "category": r["category"], "known": r["category"] in categories,
-                         "predicted": pred.category, "unknown": pred.unknown, "views": pred.views,
+                         "predicted": pred.category, "unknown": pred.unknown, "views": r.get("views", pred.views),
                          "scores": scene_scores(r["logits"], r["features"], stats)})
     known = [r for r in out_rows if r["known"]]
     held = [r for r in out_rows if not r["known"]]
@@ -357,32 +339,36 @@ def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds:
     return out
 
 
+def unmirrored(cached: dict) -> dict:
+    """:func:`cached_outputs` computed with ``mirror_views`` less the mirrored views (each block's second half)."""
+    from dataclasses import replace
+
+    half = lambda t: t[: t.shape[0] // 2]  # noqa: E731
+    scenes = lambda rows: [(half(f), half(z)) for f, z in rows]  # noqa: E731
+    data = cached["inputs"]
+    inputs = replace(data, train_features=half(data.train_features), train_logits=half(data.train_logits),
+                     train_labels=half(data.train_labels), train_scene_index=half(data.train_scene_index),
+                     val=scenes(data.val), holdout_val=scenes(data.holdout_val))
+    fresh = [{**r, "features": half(r["features"]), "logits": half(r["logits"])} for r in cached["fresh"]]
+    return {**cached, "inputs": inputs, "fresh": fresh}
+
+
 def recalibrate(cached: dict, config, before: bool = False) -> dict:
     """The cached network outputs calibrated by ``config`` (as ``classifier train`` would) and judged on the fresh scenes.
 
-    ``before=True``: as before issue 14: plain quantile threshold, unshrunk per-class scale, the old
-    leave-one-out scores (:func:`before_issue14_scores`) and ``auto`` on any number of held-out scenes.
+    ``before=True``: as the default before session 6 of issue 14 calibrated them: the class scale shrunk towards
+    one pooled scale and no mirrored views (``cached`` must then hold mirrored views, which are dropped).
     """
     from dataclasses import replace
 
-    import torch
-
-    from classifier.config import CALIBRATION_NEEDS
-    from classifier.predict import calibrate_threshold, scene_distances
     from classifier.train import calibrate_inputs, select_score
 
     if before:
-        config = replace(config, threshold_rule="quantile", scale_prior_scenes=0.0)
+        config = replace(config, class_scale_prior="pooled", mirror_views=False)
+        cached = unmirrored(cached)
     categories = tuple(cached["categories"])
-    inputs = cached["inputs"]
-    stats, thresholds, metrics = calibrate_inputs(inputs, config, len(categories))
-    if before:
-        distances = torch.stack([scene_distances(f, stats) for f, _ in inputs.val])
-        thresholds["class_mahalanobis"] = calibrate_threshold(
-            before_issue14_scores(distances, inputs.val_labels, stats.class_scale), config.keep_fraction)
-    if before:  # the scores that existed then
-        metrics["scores"].pop("combined", None)
-    score, _ = select_score(config.score, metrics, 0 if before else CALIBRATION_NEEDS.holdout_val_scenes)
+    stats, thresholds, metrics = calibrate_inputs(cached["inputs"], config, len(categories))
+    score, _ = select_score(config.score, metrics)
     result = judge(cached["fresh"], categories, score, thresholds, stats)
     result["calibration"] = metrics["calibration"]
     return result
@@ -392,7 +378,7 @@ def fresh_section_text(runs: list[dict], heading: str, command: str, train_args:
     """The BENCHMARKS.md section of the fresh-scene benchmark: the targets on the median over ``runs``, then each run.
 
     Each run: ``{"train_seed", "result" (:func:`evaluate` of the classifier as trained), "old" (the same network
-    recalibrated as before issue 14, :func:`recalibrate`), "doc" (classifier.json), "train_s", "load_before", "load_after"}``.
+    recalibrated as before session 6, :func:`recalibrate`), "doc" (classifier.json), "train_s", "load_before", "load_after"}``.
     """
     n = len(runs)
     first = runs[0]
@@ -406,12 +392,12 @@ def fresh_section_text(runs: list[dict], heading: str, command: str, train_args:
         f"`nerfmeta classifier train` with its defaults (held out: {','.join(doc['holdout_categories'])}) on "
         f"`make-collection {' '.join(train_args)}`; judged on **every** scene of a fresh collection, "
         f"`make-collection {' '.join(fresh_args)}` (another seed and other view counts; each scene classified from all "
-        f"its {'/'.join(map(str, result['views_per_scene']))} views as `nerfmeta classify` does): "
+        f"its {'/'.join(map(str, result['views_per_scene']))} views, and their mirror images, as `nerfmeta classify` does): "
         f"{result['known_scenes']} scenes of the known categories, {result['holdout_scenes']} of the held-out ones. "
         f"Trained {n} time{'s' if n > 1 else ''} (training seeds {', '.join(str(r['train_seed']) for r in runs)}); "
         "the targets are judged on the median over the runs (min-max in brackets). *Before* is the same network "
-        "calibrated with the rule before issue 14 (plain 1 % quantile, unshrunk per-class scale, `auto` on any held-out "
-        "scenes), recomputed from the saved network and the training collection.",
+        "calibrated as the default before session 6 did (class scale shrunk towards one pooled scale, no mirrored "
+        "views), recomputed from the saved network and the training collection.",
         "",
         "| target | now | before |",
         "| --- | --- | --- |",

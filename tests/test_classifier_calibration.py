@@ -22,6 +22,7 @@ from classifier.predict import (
     select_scale_prior,
     student_t_cdf,
     student_t_quantile,
+    training_class_scale,
 )
 from classifier.train import CalibrationInputs, calibrate_inputs, calibration_warnings, select_score
 from nerfmeta.errors import ConfigError
@@ -223,3 +224,64 @@ def test_default_rule_flags_a_nearby_unknown_cluster_and_keeps_fresh_known_scene
     # one validation scene per category is warned about
     lines = calibration_warnings({"a": 10, "b": 10, "c": 10}, {"a": 1, "b": 1, "c": 1}, 24)
     assert any("validation scenes" in line and "a 1" in line for line in lines)
+
+
+def test_training_class_scale_is_the_leave_one_out_distance_by_hand():
+    # class 0: scene means 0, 2, 4 on one axis (mean 2): without each, the mean is 3, 2, 1 -> distances 9, 0, 9
+    # class 1: one scene, so it takes class 0's scale; identity precision
+    means = torch.tensor([[0.0, 0.0], [2.0, 0.0], [4.0, 0.0], [10.0, 10.0]])
+    scale = training_class_scale(means, torch.tensor([0, 0, 0, 1]), torch.eye(2), 2)
+    assert scale.tolist() == pytest.approx([6.0, 6.0])
+    scale = training_class_scale(means, torch.tensor([0, 0, 0, 1]), 2.0 * torch.eye(2), 2)
+    assert scale.tolist() == pytest.approx([12.0, 12.0])
+
+
+def test_class_scale_prior_takes_its_shape_from_the_training_scenes_by_hand():
+    d, y = _own([[4.0], [30.0], []])
+    train = torch.tensor([1.0, 10.0, 5.0])
+    inflation = (4.0 / 1.0 + 30.0 / 10.0) / 2  # validation scenes lie 3.5x farther than training scenes
+    scale = fit_class_scale(d, y, 3, prior_scenes=1.0, train_scale=train)
+    assert scale.tolist() == pytest.approx([(4.0 + 3.5) / 2, (30.0 + 35.0) / 2, 17.5])
+    assert fit_class_scale(d, y, 3, prior_scenes=1e9, train_scale=train).tolist() == pytest.approx((inflation * train).tolist())
+    assert fit_class_scale(d, y, 3, prior_scenes=0.0, train_scale=train).tolist() == pytest.approx([4.0, 30.0, 17.5])
+    # without training scales the prior is the pooled mean, as before
+    assert fit_class_scale(d, y, 3, 1.0).tolist() == pytest.approx([(4.0 + 17.0) / 2, (30.0 + 17.0) / 2, 17.0])
+    # leave-one-out: a class's only scene is scored by the training shape, inflated by the other scenes
+    loo = leave_one_out_scales(d, y, 3, 64.0, train)
+    assert loo[0, 0] == pytest.approx(1.0 * 3.0) and loo[1, 1] == pytest.approx(10.0 * 4.0)
+
+
+def test_a_broad_class_with_one_validation_scene_is_scored_like_a_tight_one():
+    """Two known clusters, one broad (scene spread 3) and one tight (spread 1), one validation scene each. Shrunk
+    towards one pooled scale (the rule before; the leave-one-out prior picks the largest weight), fresh scenes of
+    the broad class score about log 9 lower than the tight class's, so a threshold flags the broad class first;
+    with the scale's shape taken from the training scenes (the default) both classes score alike."""
+    g = torch.Generator().manual_seed(3)
+    dim, views = 6, 16
+    centres = torch.zeros(2, dim)
+    centres[0, 0], centres[1, 1] = 30.0, 30.0
+    spread = torch.tensor([3.0, 1.0])
+
+    def scenes(n: int):
+        out, owners = [], []
+        for c in range(2):
+            for _ in range(n):
+                mean = centres[c] + spread[c] * torch.randn(dim, generator=g)
+                f = mean + 0.3 * torch.randn(views, dim, generator=g)
+                out.append((f, -((f[:, None, :] - centres[None]) ** 2).sum(-1) / 50.0))
+                owners.append(c)
+        return out, torch.tensor(owners)
+
+    train, owners = scenes(30)
+    fresh, fresh_owners = scenes(100)
+    val, val_owners = scenes(1)
+    data = CalibrationInputs(
+        train_features=torch.cat([f for f, _ in train]), train_logits=torch.cat([z for _, z in train]),
+        train_labels=owners.repeat_interleave(views), train_scene_index=torch.arange(len(train)).repeat_interleave(views),
+        val=val, val_labels=val_owners, holdout_val=[])
+    gap = {}
+    for prior in ("pooled", "train"):
+        stats, _, _ = calibrate_inputs(data, TrainConfig(class_scale_prior=prior), 2)
+        scores = torch.tensor([scene_scores(z, f, stats)["class_mahalanobis"] for f, z in fresh])
+        gap[prior] = float(scores[fresh_owners == 1].median() - scores[fresh_owners == 0].median())
+    assert gap["pooled"] > 1.5 and abs(gap["train"]) < 0.5, gap

@@ -297,3 +297,30 @@ def test_classifier_folder_from_before_the_robust_calibration_loads_and_predicts
     assert prediction.category == "mug" and prediction.unknown
     assert prediction.score == pytest.approx(-1.0041412554162814, rel=1e-6)
     assert prediction.confidence == pytest.approx(0.8858678340911865, rel=1e-6)
+
+
+def test_mirrored_views_follow_the_views_and_survive_a_round_trip(tmp_path: Path):
+    """``mirror_views``: every view is also classified flipped left-right; the setting is saved, and a folder
+    written before it existed (no ``input.mirror_views``) loads without it."""
+    base = _classifier()
+    inputs = model_inputs(_views(3), base.meta)
+    f, z = view_outputs(base.model, inputs, mirror=True)
+    f_plain, z_plain = view_outputs(base.model, inputs)
+    f_flip, _ = view_outputs(base.model, inputs.flip(-1))
+    assert f.shape[0] == 6 and torch.allclose(f[:3], f_plain, atol=1e-5) and torch.allclose(f[3:], f_flip, atol=1e-5)
+    meta = ClassifierMeta(**{**base.meta.__dict__, "mirror_views": True})
+    save_classifier(tmp_path / "m", Classifier(meta, base.model, base.stats), {})
+    loaded = load_classifier(tmp_path / "m")
+    assert loaded.meta.mirror_views
+    prediction = classify_views(loaded, _views(3))
+    assert prediction.views == 3  # the views given
+    plain = classify_views(Classifier(base.meta, base.model, base.stats), _views(3))
+    assert prediction.score != pytest.approx(plain.score)  # the mirrored views count in the score
+    doc = json.loads((tmp_path / "m" / META_FILE).read_text())
+    del doc["input"]["mirror_views"]
+    (tmp_path / "m" / META_FILE).write_text(json.dumps(doc))
+    assert not load_classifier(tmp_path / "m").meta.mirror_views
+    doc["input"]["mirror_views"] = "yes"
+    (tmp_path / "m" / META_FILE).write_text(json.dumps(doc))
+    with pytest.raises(ClassifierError, match="mirror_views"):
+        load_classifier(tmp_path / "m")
