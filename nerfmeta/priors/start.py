@@ -82,13 +82,13 @@ def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartRepo
     device = model.bounds.device
     pts = grid_points(model.bounds, model.size).reshape(-1, 3)
     result = carve(pts, train.images.to(device), None if train.alphas is None else train.alphas.to(device),
-                   train.poses.to(device), train.intrinsics.to(device), background.to(device))
+                   train.poses.to(device), train.intrinsics.to(device), background.to(device), voxel=model.voxel)
     if not isinstance(result, CarveStart):
         return StartReport(False, "carve", result.reason, round(time.perf_counter() - t0, 4), {"source": result.source})
     step = model.config.stepsize * model.voxel
     sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), sigma_for_alpha(EMPTY_ALPHA, step))
     model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
     figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
-               "background": result.silhouettes.background, "views": train.n_views}
+               "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px}
     reason = f"{result.silhouettes.reason}: the coarse grid starts from the visual hull ({100 * result.hull_fraction:.1f}% of it)"
     return StartReport(True, "carve", reason, round(time.perf_counter() - t0, 4), figures)
