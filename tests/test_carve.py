@@ -13,7 +13,8 @@ from nerfmeta.data.scene import Scene
 from nerfmeta.fields.grid_ops import grid_points
 from nerfmeta.fields.registry import build_model
 from nerfmeta.fields.voxel_grid import VoxelGridConfig
-from nerfmeta.priors.carve import CarveStart, Silhouettes, carve, project, silhouettes, uniform_background
+from nerfmeta.priors.carve import (HULL_MARGIN_VOXELS, CarveStart, Silhouettes, carve, pixels_per_unit, project, silhouettes,
+                                   uniform_background)
 from nerfmeta.priors.start import EMPTY_ALPHA, HULL_ALPHA, carve_grid_start, sigma_for_alpha
 from nerfmeta.render.cameras import look_at
 from nerfmeta.render.rays import image_rays
@@ -87,6 +88,26 @@ def test_busy_background_without_alpha_is_not_carved_and_says_why():
     out = carve(torch.zeros(1, 3), images, None, poses, k, torch.zeros(3))
     assert isinstance(out, Silhouettes) and out.masks is None and out.source == "none"
     assert "not a uniform background" in out.reason and "not carved" in out.reason
+
+
+def test_pixels_per_unit_exact_small_case():
+    poses, k, _ = sphere_views()  # every camera 3 units from the origin: sqrt(3^2 + h^2) for heights 0.8, -0.5, 2.0
+    distances = torch.linalg.vector_norm(poses[:, :3, 3], dim=-1)
+    assert math.isclose(pixels_per_unit(poses, k, torch.zeros(3)), float((FOCAL / distances).median()), rel_tol=1e-6)
+    assert math.isclose(pixels_per_unit(poses[:1], k[:1], torch.zeros(3)), FOCAL / math.hypot(3.0, 0.8), rel_tol=1e-6)
+
+
+def test_the_hull_margin_grows_with_the_voxel_and_keeps_the_one_pixel_hull():
+    poses, k, alphas = sphere_views()
+    images = composite(alphas, torch.ones(3) * 0.5, torch.ones(3))
+    pts = grid_points(torch.tensor([[-0.8] * 3, [0.8] * 3]), (24, 24, 24)).reshape(-1, 3)
+    tight = carve(pts, images, alphas, poses, k, torch.ones(3))
+    voxel = 1.6 / 23
+    loose = carve(pts, images, alphas, poses, k, torch.ones(3), voxel=voxel)
+    assert tight.margin_px == 1
+    assert loose.margin_px == math.ceil(HULL_MARGIN_VOXELS * voxel * pixels_per_unit(poses, k, torch.zeros(3)))
+    assert loose.margin_px > 1 and bool((loose.occupied | ~tight.occupied).all())  # a superset
+    assert loose.hull_fraction > tight.hull_fraction
 
 
 def test_too_few_views_are_not_carved():
@@ -186,3 +207,18 @@ def test_carve_route_replaces_only_a_scratch_grid_start():
     assert carve_route(nerf) == nerf
     meta = Route("meta", "meta:/zoo/meta", 0, "unknown", backbone="grid")
     assert carve_route(meta) == meta
+
+
+@pytest.mark.parametrize("backbone, carve, expected", [
+    ("grid", True, "carve"),      # no zoo, grid: the scratch route becomes the carved start
+    ("grid", False, "scratch"),   # the rule switched off: the scratch grid
+    ("nerf", True, "scratch"),    # carving starts grids only
+])
+def test_route_scene_turns_only_a_scratch_grid_route_into_the_carved_start(tiny_scene, backbone, carve, expected):
+    from nerfmeta.fit.run import RunConfig
+    from nerfmeta.route import route_scene
+
+    route = route_scene(RunConfig(scene=str(tiny_scene), backbone=backbone), None, 0, carve=carve)
+    assert (route.route, route.init, route.backbone) == (expected, expected, backbone)
+    assert "no model zoo" in route.reason
+    assert ("init_source" in route.reason) == (expected == "carve")
