@@ -222,3 +222,46 @@ def test_route_scene_turns_only_a_scratch_grid_route_into_the_carved_start(tiny_
     assert (route.route, route.init, route.backbone) == (expected, expected, backbone)
     assert "no model zoo" in route.reason
     assert ("init_source" in route.reason) == (expected == "carve")
+
+
+def test_dilation_is_a_square_exact_small_case():
+    from nerfmeta.priors.carve import dilate_masks
+
+    masks = torch.zeros(1, 7, 7, dtype=torch.bool)
+    masks[0, 3, 3] = True
+    out = dilate_masks(masks, 2)
+    expected = torch.zeros(1, 7, 7, dtype=torch.bool)
+    expected[0, 1:6, 1:6] = True
+    assert torch.equal(out, expected)
+
+
+def test_points_few_views_see_are_unknown_not_hull():
+    """Beyond the cameras' ring most views do not see a point: it is unknown (scratch's start), never hull."""
+    poses, k, _ = sphere_views()
+    alphas = torch.ones(len(poses), SIZE, SIZE)
+    alphas[:, :6, :6] = 0.0  # nearly all foreground: only the views that see a point decide
+    images = composite(alphas, torch.ones(3) * 0.5, torch.ones(3))
+    pts = grid_points(torch.tensor([[-4.0] * 3, [4.0] * 3]), (33, 33, 33)).reshape(-1, 3)
+    out = carve(pts, images, alphas, poses, k, torch.ones(3))
+    xy, front = project(pts, poses, k)
+    seen = front & (xy >= 0).all(-1) & (xy < SIZE).all(-1)
+    fraction = seen.float().mean(0)
+    assert bool(out.unknown.any()) and not bool((out.unknown & out.occupied).any())
+    assert bool((fraction[out.unknown] < 0.5).all()) and bool((fraction[out.occupied] >= 0.5).all())
+    assert bool(out.occupied[torch.linalg.vector_norm(pts, dim=-1).argmin()])  # the centre, seen by all, is hull
+
+
+def test_unknown_points_start_at_scratchs_alpha():
+    poses, k, _ = sphere_views()
+    alphas = torch.ones(len(poses), SIZE, SIZE)
+    alphas[:, :, :24] = 0.0
+    scene = tiny_scene(composite(alphas, torch.ones(3) * 0.5, torch.ones(3)), alphas, poses, k)
+    scene = dataclasses.replace(scene, bounds=torch.tensor([[-4.0] * 3, [4.0] * 3]))
+    model = build_model("grid", VoxelGridConfig(num_voxels=16**3, coarse_num_voxels=16**3), scene.bounds, seed=0)
+    report = carve_grid_start(model, scene, torch.ones(3))
+    assert report.applied and report.figures["unknown_fraction"] > 0
+    pts = grid_points(model.bounds, model.size).reshape(-1, 3)
+    alpha = model.alpha_per_step(pts)
+    levels = torch.tensor([HULL_ALPHA, model.config.coarse_alpha_init, EMPTY_ALPHA])
+    nearest = ((alpha[:, None] - levels).abs() / levels).argmin(1)
+    assert torch.allclose(alpha, levels[nearest], rtol=1e-3) and set(nearest.tolist()) == {0, 1, 2}

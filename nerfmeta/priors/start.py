@@ -86,9 +86,11 @@ def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartRepo
     if not isinstance(result, CarveStart):
         return StartReport(False, "carve", result.reason, round(time.perf_counter() - t0, 4), {"source": result.source})
     step = model.config.stepsize * model.voxel
-    sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), sigma_for_alpha(EMPTY_ALPHA, step))
+    empty = torch.where(result.unknown, sigma_for_alpha(model.config.coarse_alpha_init, step), sigma_for_alpha(EMPTY_ALPHA, step))
+    sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), empty)
     model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
     figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
-               "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px}
+               "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px,
+               "unknown_fraction": round(float(result.unknown.float().mean()), 4)}
     reason = f"{result.silhouettes.reason}: the coarse grid starts from the visual hull ({100 * result.hull_fraction:.1f}% of it)"
     return StartReport(True, "carve", reason, round(time.perf_counter() - t0, 4), figures)
