@@ -56,8 +56,9 @@ log = logging.getLogger(__name__)
 ROUTES = ("category", "meta", "carve", "scratch")
 CARVE_ROUTE = False
 """Whether a scratch route on the voxel grid becomes the carved start (``--init carve``, :mod:`nerfmeta.priors`).
-Off: on held-out generated scenes it is far ahead early but not within 0.1 dB of scratch at every time (BENCHMARKS.md,
-*Grid priors (#17)*), and there is no early check yet that would drop it where it falls behind."""
+Off: on held-out generated scenes it is far ahead early but not within 0.1 dB of scratch at every time: a concave
+object (an open lamp shade) ends below scratch, and the faster carved fit reaches the late fall of test PSNR sooner
+(BENCHMARKS.md, *Grid priors (#17)*, *Carved start: never behind*)."""
 COMPARE_DIR = "compare"
 DEFAULT_BACKBONE = "grid"
 """The backbone of a fit that names none: the voxel grid, the fastest scratch fit."""
@@ -314,7 +315,8 @@ def carve_route(route: Route) -> Route:
     if route.route != "scratch" or route.backbone != "grid":
         return route
     reason = (f"{route.reason}; the grid starts from the visual hull of the scene's own training views where they can "
-              "be carved (alpha or a uniform background), else from scratch")
+              "be carved (a bounded object scene with alpha or a uniform background), else from scratch "
+              "(summary.json[\"init_source\"] says which and why)")
     return dataclasses.replace(route, route="carve", init="carve", reason=reason)
 
 
@@ -375,10 +377,11 @@ def classify_scene(scene_path: str | Path, zoo: Zoo, background: tuple[float, fl
     return classify_views(classifier, views).to_json()
 
 
-def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int) -> Route:
+def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int, *, carve: bool = CARVE_ROUTE) -> Route:
     """Read the scene's facts and the zoo's priors, classify the scene, decide; ``classify_s`` is the wall time it took.
 
-    Nothing is read or classified when there is no zoo or the zoo has no prior of ``config.backbone``.
+    Nothing is read or classified when there is no zoo or the zoo has no prior of ``config.backbone``. With ``carve``,
+    a scratch grid route becomes the carved start (:func:`carve_route`).
     """
     t0 = time.perf_counter()
     prediction, scene, priors = None, None, {}
@@ -387,7 +390,7 @@ def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int) -> Route:
         priors = {e.name: prior_facts(zoo, e) for e in zoo.entries if e.kind in ("category", "meta")}
         prediction = classify_scene(config.scene, zoo, config.background)
     route = decide_route(prediction, zoo, freeze, backbone=config.backbone, scene=scene, priors=priors)
-    if CARVE_ROUTE:
+    if carve:
         route = carve_route(route)
     return dataclasses.replace(route, classify_s=round(time.perf_counter() - t0, 3))
 
