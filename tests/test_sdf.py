@@ -120,6 +120,18 @@ def test_a_diffuse_colour_ignores_the_view_direction(view_dependent):
     assert torch.equal(a, b) != view_dependent
 
 
+def test_the_colour_network_can_see_an_encoded_position():
+    """``color_pos_freqs=k`` feeds ``[x, sin/cos(2^j pi x)]`` (3 + 6k columns) to the colour network; 0 is NeuS's raw ``x``."""
+    widths = {k: build_model("sdf", SdfConfig(**{**TINY.__dict__, "color_pos_freqs": k}), BOX, seed=0).color[0].in_features
+              for k in (0, 3)}
+    assert widths[3] - widths[0] == 18
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "color_pos_freqs": 3}), BOX, seed=0)
+    batch = rays()
+    out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+    total_loss(out.losses).backward()
+    assert model.color[0].weight.grad[:, 3:21].abs().sum() > 0
+
+
 def test_no_mask_term_without_alpha_and_eikonal_weight_applies():
     model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.0}), BOX, seed=0)
     batch = rays()

@@ -79,6 +79,8 @@ class SdfConfig(EncodingChoice):
     """pe: octaves of the positional encoding of the position (NeuS: 6)."""
     dir_freqs: int = 4
     """Octaves of the positional encoding of the view direction (NeuS: 4)."""
+    color_pos_freqs: int = 0
+    """Octaves of a positional encoding of the position fed to the colour network beside ``x`` (0: ``x`` only, as NeuS), so texture need not bend the SDF's features."""
     view_dependent: bool = True
     """Feed the view direction to the colour network; False: a diffuse colour, which cannot fake a concavity's parallax (no shape-radiance ambiguity)."""
     depth: int = 4
@@ -122,7 +124,7 @@ class SdfConfig(EncodingChoice):
 
     def __post_init__(self) -> None:
         checks = (
-            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("depth", self.depth >= 1),
+            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("color_pos_freqs", self.color_pos_freqs >= 0), ("depth", self.depth >= 1),
             ("width", self.width >= 3), ("feature_dim", self.feature_dim >= 0), ("color_depth", self.color_depth >= 1),
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
@@ -194,7 +196,7 @@ class SdfField(RadianceModel):
         self._geometric_init(in_dim)
         self.variance = nn.Parameter(torch.tensor(float(config.init_variance)))
         dir_dim = encoding_dim(3, config.dir_freqs) if config.view_dependent else 0
-        cdims = [3 + 3 + dir_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
+        cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
         self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
         self.occupancy = OccupancyGrid(self._box())
 
@@ -296,11 +298,11 @@ class SdfField(RadianceModel):
 
     def get_outputs(self, embedding: SdfSamples, sel: torch.Tensor | None, directions: torch.Tensor,
                     ray_idx: torch.Tensor) -> torch.Tensor:
-        """Colour (K, 3) from ``[x, normal, encoded view direction, feature]`` of the points ``sel`` (no direction
-        unless ``view_dependent``)."""
+        """Colour (K, 3) from ``[encoded x, normal, encoded view direction, feature]`` of the points ``sel`` (no direction
+        unless ``view_dependent``; ``x`` itself when ``color_pos_freqs`` is 0)."""
         ev = embedding
         x, grad, feature = (ev.x, ev.grad, ev.feature) if sel is None else (ev.x[sel], ev.grad[sel], ev.feature[sel])
-        parts = [x, F.normalize(grad, dim=-1)]
+        parts = [positional_encoding(x, self.config.color_pos_freqs), F.normalize(grad, dim=-1)]
         if self.config.view_dependent:
             parts.append(positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs))
         h = torch.cat(parts + [feature], dim=-1)
