@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfmeta.geometry.metrics import compare_surfaces
+from nerfmeta.geometry.metrics import compare_surfaces, sampling_floor
 from nerfmeta.geometry.truth import project_to_zero_set, sample_sdf_surface
 
 
@@ -52,6 +52,15 @@ def test_exact_sdf_samples_lie_on_the_surface_with_radial_normals():
     assert np.allclose(s.normals, s.points / r[:, None], atol=1e-6)
 
 
+def test_the_sampling_floor_is_what_an_exact_surface_scores_and_falls_as_one_over_sqrt_n():
+    """Two samplings of one sphere are not at distance 0: about half their spacing, ~ sqrt(area / n)."""
+    floors = {n: sampling_floor(sphere_points(n, 1.0, seed=1)[0], sphere_points(n, 1.0, seed=2)[0]) for n in (2000, 32000)}
+    assert floors[2000] > 0.5  # % of the diagonal (~3.5): 0.5 sqrt(4 pi / 2000) / 3.46 ~ 1.1 %
+    assert floors[2000] / floors[32000] == pytest.approx(4.0, rel=0.15)
+    exact = compare_surfaces(sphere_points(2000, 1.0, seed=3)[0], sphere_points(2000, 1.0, seed=1)[0])
+    assert exact.chamfer_pct_diagonal == pytest.approx(floors[2000], rel=0.1)
+
+
 def test_projection_onto_a_box_face():
     def sdf(x):
         return (x.abs() - 0.5).max(dim=-1).values  # exact inside, a bound outside: still converges on faces
@@ -84,6 +93,9 @@ def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mu
     doc = json.loads(capsys.readouterr().out)
     assert doc == json.loads((tmp_path / "g.json").read_text())
     assert doc["chamfer"] == pytest.approx(0.5 * (doc["accuracy"] + doc["completeness"]))
+    assert 0 < doc["floor_pct_diagonal"] < doc["chamfer_pct_diagonal"]  # an early sphere is far from the mug
+    assert doc["topology"]["components"] >= doc["topology"]["main_components"] >= 1
+    assert geometry["floor_pct_diagonal"] > 0 and geometry["topology"]["main_components"] >= 1
     # against its own mesh, the run's surface is far closer than against the truth
     assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
     capsys.readouterr()

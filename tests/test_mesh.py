@@ -11,7 +11,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import build_model
 from nerfmeta.fields.sdf import SdfConfig
 from nerfmeta.geometry.extract import marching_cubes, surface_function
-from nerfmeta.geometry.mesh import Mesh, read_mesh, write_ply
+from nerfmeta.geometry.mesh import Mesh, mesh_topology, read_mesh, write_ply
 from nerfmeta.geometry.runs import mesh_in_file_frame
 
 TETRA = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]), np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
@@ -53,6 +53,38 @@ def test_marching_cubes_sphere_faces_point_outward(inside_above):
     centres = mesh.vertices[mesh.faces].mean(1)
     assert (np.sum(face_n * centres, axis=1) > 0).all()
     assert (np.sum(mesh.normals * mesh.vertices, axis=1) > 0).all()  # vertex normals point outward too
+
+
+def lattice_mesh(sdf, n: int = 40) -> Mesh:
+    axis = np.linspace(-1, 1, n)
+    p = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    return marching_cubes(sdf(p).astype(np.float32), np.array([[-1.0] * 3, [1.0] * 3]), 0.0, False)
+
+
+def test_topology_counts_components_and_handles():
+    """A sphere has genus 0, a torus (a mug's handle) 1, two balls are two components; a tetrahedron is closed."""
+    def sphere(p, c=(0.0, 0.0, 0.0), r=0.5):
+        return np.linalg.norm(p - np.array(c), axis=-1) - r
+
+    def torus(p):
+        return np.hypot(np.hypot(p[..., 0], p[..., 1]) - 0.55, p[..., 2]) - 0.2
+
+    one, ring = mesh_topology(lattice_mesh(sphere)), mesh_topology(lattice_mesh(torus))
+    two = mesh_topology(lattice_mesh(lambda p: np.minimum(sphere(p, (-0.5, 0, 0), 0.3), sphere(p, (0.5, 0, 0), 0.3))))
+    assert (one.components, one.genus, one.boundary_edges) == (1, (0.0,), 0)
+    assert (ring.components, ring.genus, ring.boundary_edges) == (1, (1.0,), 0)
+    assert two.components == 2 and two.genus == (0.0, 0.0) and two.main() == (2, 0.0)
+    tetra = mesh_topology(TETRA)
+    assert (tetra.components, tetra.faces, tetra.genus, tetra.boundary_edges, tetra.nonmanifold_edges) == (1, (4,), (0.0,), 0, 0)
+    opened = mesh_topology(Mesh(TETRA.vertices, TETRA.faces[:3]))
+    assert opened.boundary_edges == 3
+
+
+def test_small_floaters_are_left_out_of_the_main_topology():
+    tiny = mesh_topology(lattice_mesh(lambda p: np.minimum(np.linalg.norm(p, axis=-1) - 0.7,
+                                                               np.linalg.norm(p - 0.9, axis=-1) - 0.06)))
+    assert tiny.components == 2 and tiny.faces[0] > 100 * tiny.faces[1]
+    assert tiny.main() == (1, 0.0)
 
 
 def test_mesh_is_in_the_scene_files_frame_with_colours():

@@ -90,6 +90,48 @@ def test_losses_are_named_terms_and_every_parameter_learns():
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
 
 
+def test_the_variance_has_its_own_learning_rate():
+    """``variance_lr`` sets how fast the logistic sharpens: one Adam step moves ``s`` by ``exp(10 variance_lr)``."""
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "variance_lr": 0.02, "lr": 1e-4}), BOX, seed=0)
+    groups = {g.name: g for g in model.param_groups()}
+    assert groups["variance"].param_names == ("variance",) and groups["variance"].lr == 0.02
+    assert "variance" not in groups["sdf"].param_names and groups["sdf"].lr == 1e-4
+    check_partition(model)
+    opt = torch.optim.Adam([{"params": [model.get_parameter(n) for n in g.param_names], "lr": g.lr} for g in groups.values()])
+    s0 = float(model.inv_s().detach())
+    batch = rays(alpha=True)
+    out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+    total_loss(out.losses).backward()
+    opt.step()
+    assert float(model.inv_s().detach()) / s0 == pytest.approx(math.exp(10 * 0.02 * -math.copysign(1.0, float(model.variance.grad))), rel=1e-3)
+
+
+@pytest.mark.parametrize("view_dependent", [True, False])
+def test_a_diffuse_colour_ignores_the_view_direction(view_dependent):
+    """``view_dependent=False``: the colour at a point is the same from every direction (it cannot fake parallax)."""
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "view_dependent": view_dependent}), BOX, seed=0)
+    for layer in model.color:
+        torch.nn.init.normal_(layer.weight, 0.0, 1.0)
+    points = torch.rand(5, 3) - 0.5
+    with torch.no_grad():
+        _, emb = model.get_density(points)
+        a = model.get_outputs(emb, None, F.normalize(torch.randn(5, 3), dim=-1), torch.arange(5))
+        b = model.get_outputs(emb, None, F.normalize(torch.randn(5, 3), dim=-1), torch.arange(5))
+    assert torch.equal(a, b) != view_dependent
+
+
+def test_the_colour_network_can_see_an_encoded_position():
+    """``color_pos_freqs=k`` feeds ``[x, sin/cos(2^j pi x)]`` (3 + 6k columns) to the colour network; 0 is NeuS's raw ``x``."""
+    widths = {k: build_model("sdf", SdfConfig(**{**TINY.__dict__, "color_pos_freqs": k}), BOX, seed=0).color[0].in_features
+              for k in (0, 3)}
+    assert widths[3] - widths[0] == 18
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "color_pos_freqs": 3}), BOX, seed=0)
+    batch = rays()
+    out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+    total_loss(out.losses).backward()
+    assert model.color[0].weight.grad[:, 3:21].abs().sum() > 0
+
+
 def test_no_mask_term_without_alpha_and_eikonal_weight_applies():
     model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.0}), BOX, seed=0)
     batch = rays()

@@ -18,7 +18,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Mesh RUN (as 'nerfmeta mesh'), sample both surfaces and report DTU's accuracy and completeness (mean "
             "nearest-neighbour distances below --threshold), Chamfer = their mean, F-score at --tolerance and normal "
-            "consistency, in the scene file's units and as %% of the ground truth's bounding-box diagonal. --gt is a "
+            "consistency, in the scene file's units and as %% of the ground truth's bounding-box diagonal, beside the "
+            "sampling floor (the Chamfer of two samplings of the ground truth: what a perfect surface scores) and the "
+            "mesh's topology (components, genus). --gt is a "
             "generated scene (its exact SDF, sampled on the zero level set) or a PLY/OBJ mesh."
         ),
     )
@@ -31,17 +33,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from nerfmeta.geometry.load import load_run_model
-    from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame
+    from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame, topology_summary
     from nerfmeta.geometry.truth import ground_truth
     from nerfmeta.paths import check_output_file, write_output_json
 
     config = build_config(GeometryConfig, given_values(args, GeometryConfig))
     json_out = check_output_file(args.json_out, option="--json-out", inputs=(args.run, args.gt)) if args.json_out else None
     gt = ground_truth(args.gt, config.n_points, resolution=max(config.resolution, 128), seed=config.seed + 1)
+    twin = ground_truth(args.gt, config.n_points, resolution=max(config.resolution, 128), seed=config.seed + 2) if config.floor else None
     model, scene = load_run_model(args.run)
     mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
-    doc = {**dataclasses.asdict(evaluate_mesh(mesh, gt, config)), "ground_truth": gt.source, "run": args.run,
-           "resolution": config.resolution}
+    doc = {**dataclasses.asdict(evaluate_mesh(mesh, gt, config, twin)), "ground_truth": gt.source, "run": args.run,
+           "resolution": config.resolution, "topology": topology_summary(mesh)}
     if json_out is not None:
         write_output_json(json_out, doc, option="--json-out")
     json.dump(doc, sys.stdout, indent=2)

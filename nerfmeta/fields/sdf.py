@@ -79,6 +79,10 @@ class SdfConfig(EncodingChoice):
     """pe: octaves of the positional encoding of the position (NeuS: 6)."""
     dir_freqs: int = 4
     """Octaves of the positional encoding of the view direction (NeuS: 4)."""
+    color_pos_freqs: int = 0
+    """Octaves of a positional encoding of the position fed to the colour network beside ``x`` (0: ``x`` only, as NeuS), so texture need not bend the SDF's features."""
+    view_dependent: bool = True
+    """Feed the view direction to the colour network; False: a diffuse colour, which cannot fake a concavity's parallax (no shape-radiance ambiguity)."""
     depth: int = 4
     """Hidden layers of the SDF network."""
     width: int = 64
@@ -114,11 +118,13 @@ class SdfConfig(EncodingChoice):
     occupancy_every: int = 25
     """Steps between occupancy refreshes."""
     lr: float = 1e-3
-    """Adam learning rate of the networks and of the variance."""
+    """Adam learning rate of the SDF and colour networks."""
+    variance_lr: float = 1e-3
+    """Adam learning rate of the variance: each step moves ``s`` by at most a factor ``exp(10 variance_lr)`` (NeuS: the networks' rate)."""
 
     def __post_init__(self) -> None:
         checks = (
-            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("depth", self.depth >= 1),
+            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("color_pos_freqs", self.color_pos_freqs >= 0), ("depth", self.depth >= 1),
             ("width", self.width >= 3), ("feature_dim", self.feature_dim >= 0), ("color_depth", self.color_depth >= 1),
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
@@ -126,6 +132,7 @@ class SdfConfig(EncodingChoice):
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
+            ("variance_lr", 0.0 <= self.variance_lr < math.inf),
         )
         for name, ok in checks:
             if not ok:
@@ -188,7 +195,8 @@ class SdfField(RadianceModel):
         self.sdf = nn.ModuleList(nn.Linear(dims[i], dims[i + 1]) for i in range(len(dims) - 1))
         self._geometric_init(in_dim)
         self.variance = nn.Parameter(torch.tensor(float(config.init_variance)))
-        cdims = [3 + 3 + encoding_dim(3, config.dir_freqs) + config.feature_dim] + [config.color_width] * config.color_depth + [3]
+        dir_dim = encoding_dim(3, config.dir_freqs) if config.view_dependent else 0
+        cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
         self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
         self.occupancy = OccupancyGrid(self._box())
 
@@ -290,11 +298,14 @@ class SdfField(RadianceModel):
 
     def get_outputs(self, embedding: SdfSamples, sel: torch.Tensor | None, directions: torch.Tensor,
                     ray_idx: torch.Tensor) -> torch.Tensor:
-        """Colour (K, 3) from ``[x, normal, encoded view direction, feature]`` of the points ``sel``."""
+        """Colour (K, 3) from ``[encoded x, normal, encoded view direction, feature]`` of the points ``sel`` (no direction
+        unless ``view_dependent``; ``x`` itself when ``color_pos_freqs`` is 0)."""
         ev = embedding
         x, grad, feature = (ev.x, ev.grad, ev.feature) if sel is None else (ev.x[sel], ev.grad[sel], ev.feature[sel])
-        d = positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs)
-        h = torch.cat([x, F.normalize(grad, dim=-1), d, feature], dim=-1)
+        parts = [positional_encoding(x, self.config.color_pos_freqs), F.normalize(grad, dim=-1)]
+        if self.config.view_dependent:
+            parts.append(positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs))
+        h = torch.cat(parts + [feature], dim=-1)
         for layer in self.color[:-1]:
             h = F.relu(layer(h))
         return torch.sigmoid(self.color[-1](h))
@@ -384,5 +395,6 @@ class SdfField(RadianceModel):
     def param_groups(self) -> list[ParamGroup]:
         names = tuple(n for n, _ in self.named_parameters())
         enc = tuple(n for n in names if n.startswith("encoder."))
-        groups = [ParamGroup("sdf", tuple(n for n in names if n not in enc), self.config.lr)]
+        groups = [ParamGroup("sdf", tuple(n for n in names if n not in enc and n != "variance"), self.config.lr),
+                  ParamGroup("variance", ("variance",), self.config.variance_lr)]
         return groups + [ParamGroup("encoding", enc, self.config.encoding_lr)] if enc else groups

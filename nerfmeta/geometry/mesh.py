@@ -216,3 +216,53 @@ def sample_surface(mesh: Mesh, n: int, rng: np.random.Generator) -> tuple[np.nda
     u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
     a, b, c = (mesh.vertices[mesh.faces[face, k]] for k in range(3))
     return a + u[:, None] * (b - a) + v[:, None] * (c - a), normals[face]
+
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """Connected components of a triangle mesh and their genus (from the Euler characteristic).
+
+    Attributes:
+        components: number of connected components (sharing vertices).
+        faces: (components,) faces per component, largest first.
+        genus: (components,) genus per component, ``(2 - (V - E + F)) / 2`` (a sphere 0, a torus or a
+            mug with a handle 1); meaningful for closed components only.
+        boundary_edges: edges with one face (0 for a closed mesh: the genus is then exact).
+        nonmanifold_edges: edges with more than two faces.
+    """
+
+    components: int
+    faces: tuple[int, ...]
+    genus: tuple[float, ...]
+    boundary_edges: int
+    nonmanifold_edges: int
+
+    def main(self, min_fraction: float = 0.01) -> tuple[int, float]:
+        """Components holding at least ``min_fraction`` of the faces, and their total genus (floaters left out)."""
+        total = sum(self.faces)
+        kept = [g for f, g in zip(self.faces, self.genus) if f >= min_fraction * total]
+        return len(kept), float(sum(kept))
+
+
+def mesh_topology(mesh: Mesh) -> MeshTopology:
+    """Components, genus per component and open/non-manifold edge counts of ``mesh`` (vertices welded by index)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(unique)), (unique[:, 0], unique[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    used = np.unique(faces)
+    comp_ids, comp_of_used = np.unique(label[used], return_inverse=True)
+    index = {int(c): i for i, c in enumerate(comp_ids)}
+    k = len(comp_ids)
+    v_count = np.bincount(comp_of_used, minlength=k)
+    e_count = np.bincount([index[int(c)] for c in label[unique[:, 0]]], minlength=k) if len(unique) else np.zeros(k, int)
+    f_count = np.bincount([index[int(c)] for c in label[faces[:, 0]]], minlength=k) if len(faces) else np.zeros(k, int)
+    genus = (2 - (v_count - e_count + f_count)) / 2.0
+    order = np.argsort(-f_count, kind="stable")
+    return MeshTopology(k, tuple(int(f_count[i]) for i in order), tuple(float(genus[i]) for i in order),
+                        int((counts == 1).sum()), int((counts > 2).sum()))

@@ -12,8 +12,8 @@ import torch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.geometry.extract import extract_mesh
-from nerfmeta.geometry.mesh import Mesh
-from nerfmeta.geometry.metrics import GeometryConfig, GeometryMetrics, compare_surfaces
+from nerfmeta.geometry.mesh import Mesh, mesh_topology
+from nerfmeta.geometry.metrics import GeometryConfig, GeometryMetrics, compare_surfaces, sampling_floor
 from nerfmeta.geometry.truth import SurfaceSamples, sample_mesh_surface, sample_sdf_surface, scene_sdf_of
 
 log = logging.getLogger(__name__)
@@ -29,11 +29,27 @@ def mesh_in_file_frame(model: RadianceModel, scene: Any, resolution: int, *, lev
     return mesh.transformed(norm.scale, np.asarray(norm.offset, dtype=np.float64))
 
 
-def evaluate_mesh(mesh: Mesh, gt: SurfaceSamples, config: GeometryConfig) -> GeometryMetrics:
-    """Sample ``mesh`` and compare it with the ground-truth samples (both in the scene file's frame)."""
+def evaluate_mesh(mesh: Mesh, gt: SurfaceSamples, config: GeometryConfig, twin: SurfaceSamples | None = None) -> GeometryMetrics:
+    """Sample ``mesh`` and compare it with the ground-truth samples (both in the scene file's frame).
+
+    ``twin``: a second, independent sampling of the ground truth; with it the metrics carry the
+    sampling floor (``floor_pct_diagonal``, :func:`~nerfmeta.geometry.metrics.sampling_floor`).
+    """
     pred = sample_mesh_surface(mesh, config.n_points, seed=config.seed)
-    return compare_surfaces(pred.points, gt.points, pred_normals=pred.normals, gt_normals=gt.normals,
-                            threshold=config.threshold, tolerance=config.tolerance)
+    metrics = compare_surfaces(pred.points, gt.points, pred_normals=pred.normals, gt_normals=gt.normals,
+                               threshold=config.threshold, tolerance=config.tolerance)
+    if twin is None:
+        return metrics
+    floor = sampling_floor(gt.points, twin.points, threshold=config.threshold, tolerance=config.tolerance)
+    return dataclasses.replace(metrics, floor_pct_diagonal=floor)
+
+
+def topology_summary(mesh: Mesh) -> dict[str, Any]:
+    """The mesh's topology for a report: all components, the main ones (>= 1 % of the faces) and their genus."""
+    topo = mesh_topology(mesh)
+    main, genus = topo.main()
+    return {"components": topo.components, "main_components": main, "main_genus": genus,
+            "boundary_edges": topo.boundary_edges, "nonmanifold_edges": topo.nonmanifold_edges}
 
 
 def fit_geometry(model: RadianceModel, scene: Any, config: GeometryConfig = FIT_GEOMETRY) -> dict[str, Any] | None:
@@ -47,10 +63,12 @@ def fit_geometry(model: RadianceModel, scene: Any, config: GeometryConfig = FIT_
         return None
     try:
         gt = sample_sdf_surface(*found, config.n_points, resolution=config.resolution, seed=config.seed)
+        twin = sample_sdf_surface(*found, config.n_points, resolution=config.resolution, seed=config.seed + 1) if config.floor else None
         with torch.random.fork_rng(devices=[]):
             mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
-        metrics = evaluate_mesh(mesh, gt, config)
+        metrics = evaluate_mesh(mesh, gt, config, twin)
     except (ConfigError, ImportError) as err:
         log.warning("geometry not measured: %s", err)
         return {"error": str(err)}
-    return {**dataclasses.asdict(metrics), "resolution": config.resolution, "ground_truth": "exact SDF"}
+    return {**dataclasses.asdict(metrics), "resolution": config.resolution, "ground_truth": "exact SDF",
+            "topology": topology_summary(mesh)}
