@@ -76,12 +76,15 @@ def interp_cf(grid: torch.Tensor, points: torch.Tensor, bounds: torch.Tensor) ->
     Returns:
         (N, C).
     """
-    n = points.shape[0]
-    coords = (to_unit(points, bounds) * 2.0 - 1.0).flip(-1)  # grid_sample wants (z, y, x) -> (W, H, D)
-    out = F.grid_sample(
-        grid.unsqueeze(0), coords.view(1, 1, 1, n, 3), mode="bilinear", padding_mode="border", align_corners=True
-    )
-    return out.view(grid.shape[0], n).t()
+    return _sample_unit(grid, to_unit(points, bounds) * 2.0 - 1.0).t()
+
+
+def _sample_unit(grid: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """(C, N) trilinear values of a (C, X, Y, Z) grid at (N, 3) ``(x, y, z)`` positions in [-1, 1] (corners at
+    +-1, outside clamped to the faces): one ``grid_sample``, which wants ``(z, y, x)``."""
+    out = F.grid_sample(grid.unsqueeze(0), u.flip(-1).reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border",
+                        align_corners=True)
+    return out.view(grid.shape[0], -1)
 
 
 def grid_coords(points: torch.Tensor, bounds: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
@@ -195,12 +198,8 @@ def interp_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     Returns:
         (C, N).
     """
-    size = grid.shape[1:]
-    scale = torch.tensor([2.0 / (s - 1) for s in size], dtype=x.dtype, device=x.device)[:, None]
-    u = (x * scale - 1.0).flip(0).t()  # grid_sample wants (z, y, x) in [-1, 1]
-    out = F.grid_sample(grid.unsqueeze(0), u.reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border",
-                        align_corners=True)
-    return out.view(grid.shape[0], -1)
+    scale = torch.tensor([2.0 / (s - 1) for s in grid.shape[1:]], dtype=x.dtype, device=x.device)[:, None]
+    return _sample_unit(grid, (x * scale - 1.0).t())
 
 
 def channels_last(grid: torch.Tensor) -> torch.Tensor:

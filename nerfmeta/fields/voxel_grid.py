@@ -40,8 +40,8 @@ compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in 
 lookups use :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
 computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders (no
 gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
-on channels-last copies of the colour grids, made per render call): the same values, about 1.7x the rays
-per second.
+on channels-last copies of the colour grids, made per render call): the same values, 1.8x the rays per
+second on a contracted beer frame and 1.1-1.2x on lego (BENCHMARKS.md, *Faster test renders*).
 An optional distortion loss (``distortion_weight``, mip-NeRF 360) gathers each ray's weight.
 
 Defaults: DirectVoxGO's, except where a 60-second budget on a 2-core CPU asked otherwise (each
@@ -747,8 +747,7 @@ class VoxelGrid(RadianceModel):
         The embedding is the trilinear corners (indices, weights), (8, N) each, shared by the colour
         lookups. Without gradient (test-time renders) it is the corner coordinates (3, N) alone, and
         every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy
-        of a colour grid when the samples outnumber an eighth of its voxels): the same values, about a
-        third less time.
+        of a colour grid when the samples outnumber an eighth of its voxels): the same values, faster.
         """
         if self.box is not None:
             points = self.box.contract(points)
