@@ -9,7 +9,10 @@ second of every view, their median, the test PSNR and the samples evaluated per 
 Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X]
-        [--orbit N --out DIR]
+        [--orbit N --out DIR] [--weights]
+
+With ``--weights`` it also prints, for the first test view, how the samples' alphas and compositing
+weights are spread (what decides how many samples must be coloured and whether early termination pays).
 """
 
 from __future__ import annotations
@@ -67,6 +70,29 @@ def write_orbit(model, scene, background: torch.Tensor, frames: int, folder: Pat
         iio.imwrite(folder / f"orbit_{k:03d}.png", (rgb.clamp(0, 1) * 255).round().to(torch.uint8).numpy())
 
 
+@torch.no_grad()
+def weight_spread(model, scene, view: int, chunk: int) -> str:
+    """One line: the share of the samples of ``view``'s pixel rays by alpha and by compositing weight, and the
+    mean transmittance left behind the last sample (a haze leaves much, an opaque scene little)."""
+    from nerfmeta.fit.evaluate import view_rays
+    from nerfmeta.render.volume import alpha_from_tau, packed_weights
+
+    rays = view_rays(scene, view, "cpu")
+    alphas, weights, finals = [], [], []
+    for start in range(0, len(rays), chunk):
+        batch = rays[start : start + chunk]
+        samples = model.sample(batch, train=False, generator=None).samples
+        tau = model.get_density(samples.points(batch.origins, batch.directions))[0] * samples.delta
+        w, t_final = packed_weights(tau, samples.ray_idx, len(batch))
+        alphas.append(alpha_from_tau(tau))
+        weights.append(w)
+        finals.append(t_final)
+    a, w, t = torch.cat(alphas), torch.cat(weights), torch.cat(finals)
+    return (f"view {view}: {len(a) / len(t):.1f} samples/ray; alpha < 1e-3: {(a < 1e-3).float().mean():.1%}, "
+            f"< 1e-2: {(a < 1e-2).float().mean():.1%}; weight > 1e-3: {(w > 1e-3).float().mean():.1%}; "
+            f"mean final transmittance {t.mean():.3f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a fit run folder with a checkpoint")
@@ -77,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="grid: test-time early termination threshold (0: the one-pass path without it; default: the run's)")
     parser.add_argument("--orbit", type=int, default=0, help="also write N frames orbiting the scene's centre to --out")
     parser.add_argument("--out", type=Path, default=None, help="folder for the orbit frames (PNG)")
+    parser.add_argument("--weights", action="store_true",
+                        help="also print the spread of the first test view's sample alphas and weights")
     args = parser.parse_args(argv)
     config, scene, model = load_run(args.run)
     if args.stop_eps is not None:
@@ -93,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         with profile(activities=[ProfilerActivity.CPU]) as prof:
             evaluate_views(model, scene, [views[0]], background, with_ssim=False, chunk=chunk)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    if args.weights:
+        print(weight_spread(model, scene, int(views[0]), chunk))
     rates, psnrs, spr = [], [], []
     for view in views:
         start = time.perf_counter()
