@@ -4,7 +4,8 @@ Workload: the scene of :mod:`nerfmeta.collection.forward` (20 views of 160 x 120
 every 8th, 0, 8, 16, held out: 17 training and 3 test views), written once into a temporary
 folder. Two arms, each ``nerfmeta fit SCENE --init scratch --time-budget BUDGET --eval-every 0
 --checkpoint-every 0 --seed K``: ``ndc`` (the scene detected as forward: rays in NDC) and
-``bounded`` (``--scene-type object``: world rays in the bounded box, as before NDC). Arms are
+``bounded`` (``--scene-type object``: world rays in the bounded box, as before NDC); ``--arms`` picks
+others (``ndc-0.75``: NDC with NeRF's near plane, to compare near-plane factors). Arms are
 interleaved (ndc, bounded, ndc, bounded, ...) so the machine's load falls on both; each fit is a
 fresh process. After each fit the test views are rendered again from its checkpoint and timed
 (rays per second of the rendering alone), and the renders are kept for looking at with ``--keep``.
@@ -13,7 +14,7 @@ Usage::
 
     flock /work/wt/bench.lock .venv/bin/python scripts/bench_forward.py [--reps 3] [--budget 60]
         [--width 160 --height 120] [--layout-seed 0 --scene-seed 0 --wall-distance 16 --grid 5 4 --spacing 0.15]
-        [--keep DIR] [--set KEY=VALUE ...] [--ndc-set KEY=VALUE ...]
+        [--keep DIR] [--set KEY=VALUE ...] [--ndc-set KEY=VALUE ...] [--arms ndc,bounded]
 """
 
 from __future__ import annotations
@@ -38,7 +39,10 @@ from nerfmeta.data import load_scene
 from nerfmeta.fit.evaluate import render_view
 from nerfmeta.fit.restore import load_fitted_run
 
-ARMS = {"ndc": ["--scene-type", "auto"], "bounded": ["--scene-type", "object"]}
+ARMS = {"ndc": ["--scene-type", "auto"], "bounded": ["--scene-type", "object"],
+        "ndc-0.75": ["--scene-type", "auto", "--ndc-near-factor", "0.75"]}
+"""Arms by name: the default route (NDC with the default near plane), the bounded grid, and NDC with NeRF's near
+plane at 0.75 x the near bound (the default before session 7)."""
 
 
 def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: int) -> dict:
@@ -48,7 +52,7 @@ def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: i
            *(["--iters", str(args.iters)] if args.iters else ["--time-budget", f"{args.budget:g}"]),
            "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed),
            *ARMS[arm], *sum((["--set", s] for s in args.set), []),
-           *(sum((["--set", s] for s in args.ndc_set), []) if arm == "ndc" else [])]
+           *(sum((["--set", s] for s in args.ndc_set), []) if arm.startswith("ndc") else [])]
     with open(out.with_suffix(".log"), "w") as log:
         proc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT)
     if proc.returncode != 0:
@@ -87,14 +91,19 @@ def main() -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="backbone override for both arms")
     parser.add_argument("--ndc-set", action="append", default=[], metavar="KEY=VALUE",
                         help="backbone override for the ndc arm only (e.g. a regulariser tried against the bounded grid)")
+    parser.add_argument("--arms", default="ndc,bounded", help=f"comma-separated arms, interleaved ({', '.join(ARMS)})")
     args = parser.parse_args()
-    results: dict[str, list[dict]] = {arm: [] for arm in ARMS}
+    arms = args.arms.split(",")
+    unknown = [a for a in arms if a not in ARMS]
+    if unknown:
+        parser.error(f"--arms: unknown arm {unknown[0]!r} (choose from {', '.join(ARMS)})")
+    results: dict[str, list[dict]] = {arm: [] for arm in arms}
     with tempfile.TemporaryDirectory(prefix="bench_forward_") as tmp:
         layout = ForwardSceneConfig(width=args.width, height=args.height, seed=args.scene_seed, layout_seed=args.layout_seed,
                                     wall_distance=args.wall_distance, grid=tuple(args.grid), spacing=args.spacing)
         scene = make_forward_scene(Path(tmp) / "scene", layout)
         for k in range(args.reps):
-            for arm in ARMS:
+            for arm in arms:
                 run = Path(tmp) / f"{arm}{k}"
                 r = fit_once(scene, run, arm, args, k)
                 r["rays_per_s"], renders = render_speed(run)
@@ -110,8 +119,8 @@ def main() -> int:
     print(f"{args.reps} runs per arm, interleaved; {args.width} x {args.height}; "
           f"{f'{args.iters} steps' if args.iters else f'budget {args.budget:g} s'}; "
           f"{datetime.date.today().isoformat()}; load average now {' / '.join(f'{v:.1f}' for v in os.getloadavg())}\n")
-    print("| figure | " + " | ".join(f"{a} median (min-max)" for a in ARMS) + " |")
-    print("|---|" + "---|" * len(ARMS))
+    print("| figure | " + " | ".join(f"{a} median (min-max)" for a in arms) + " |")
+    print("|---|" + "---|" * len(arms))
     for key, label, digits in (("test_psnr", "test PSNR (dB)", 2), ("iters", "iterations", 0), ("time_s", "fit seconds", 1),
                                ("samples_per_ray", "samples per ray (test)", 1), ("rays_per_s", "test rendering (rays/s)", 0),
                                ("peak_rss_mb", "peak RSS (MB)", 0)):

@@ -141,3 +141,30 @@ def test_a_forward_scene_ndc_cannot_hold_is_refused_in_one_line(forward_scene):
     turned[0, :3, :3] = turned[0, :3, :3] @ turn
     with pytest.raises(ConfigError, match="--scene-type object"):
         fit_space(replace(scene, poses=turned, scene_type=SceneType("forward", "set by the user", detected=False)))
+
+
+def test_the_ndc_near_plane_is_recorded_per_run_and_old_runs_keep_nerfs_factor(forward_scene):
+    """A run's NDC space comes from its own ``ndc_near_factor`` (default 0.9); a ``config.json`` written before
+    the factor was recorded reloads with NeRF's 0.75, so its checkpoint stays in the space it was fitted in."""
+    from nerfmeta.errors import ConfigError
+    from nerfmeta.fit.run import NDC_NEAR_FACTOR, run_scene
+    from nerfmeta.io import to_jsonable
+    from nerfmeta.render.ndc import BD_FACTOR, ndc_space
+
+    loaded = load_scene(forward_scene)
+    new = run_scene(RunConfig(scene=str(forward_scene)))
+    assert new.ndc.near_factor == NDC_NEAR_FACTOR == 0.9
+    assert new.ndc.scene_near == pytest.approx(loaded.near)  # the render path's focus depth is the scene's near
+    assert new.ndc.scale == pytest.approx(1.0 / (0.9 * loaded.near))
+    old_json = {k: v for k, v in to_jsonable(RunConfig(scene=str(forward_scene))).items() if k != "ndc_near_factor"}
+    old = run_scene(RunConfig.from_json(old_json))
+    assert old.ndc.near_factor == BD_FACTOR == 0.75 and old.ndc.scale == pytest.approx(1.0 / (0.75 * loaded.near))
+    assert RunConfig.from_json(to_jsonable(RunConfig(scene="x", ndc_near_factor=0.8))).ndc_near_factor == 0.8
+    # a nearer plane moves every NDC point: the two spaces differ where it matters, in depth
+    assert not torch.allclose(view_rays(new, 0, "cpu").origins, view_rays(old, 0, "cpu").origins)
+    with pytest.raises(ValueError, match="near factor"):
+        ndc_space(loaded.poses, loaded.intrinsics, loaded.height, loaded.width, loaded.near, near_factor=1.5)
+    from nerfmeta.config import check_fields
+
+    with pytest.raises(ConfigError, match="ndc_near_factor"):
+        check_fields(RunConfig(scene="x", ndc_near_factor=0.0), "run config")

@@ -31,7 +31,8 @@ FREEZE_HELP = (
     "so K = 1 freezes the density grid (geometry), K = 2 also the feature grid (only the colour MLP adapts)"
 )
 
-RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "scene_type", "device")
+RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "scene_type",
+               "ndc_near_factor", "device")
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
 """Spellings of :class:`FitConfig` fields that differ from the field name (kept from earlier releases)."""

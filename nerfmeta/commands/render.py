@@ -18,7 +18,6 @@ from pathlib import Path
 import torch
 
 from nerfmeta.errors import ConfigError
-from nerfmeta.render.ndc import BD_FACTOR
 
 PATHS = ("auto", "orbit", "spiral", "test")
 FRAME_CHUNK = 8
@@ -107,8 +106,8 @@ def path_poses(scene, path: str, frames: int) -> tuple[str, torch.Tensor]:
             return path, paths.orbit_path(train, frames)
         except ValueError as err:
             raise ConfigError(f"--path orbit: {err}; use --path spiral") from None
-    if scene.ndc is not None:  # fitted in NDC: near/far are NDC distances; the world's near plane is 1 / scale
-        depth = paths.focus_depth(1.0 / (scene.ndc.scale * BD_FACTOR), math.inf)
+    if scene.ndc is not None:  # fitted in NDC: near/far are NDC distances; the world's near bound is kept in the space
+        depth = paths.focus_depth(scene.ndc.scene_near, math.inf)
     else:
         depth = paths.focus_depth(scene.near, scene.far)
     return path, paths.spiral_path(train, frames, depth)

@@ -13,7 +13,7 @@ import torch
 
 from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
-from nerfmeta.render.ndc import NDCSpace, ndc_box, ndc_space, to_ndc
+from nerfmeta.render.ndc import BD_FACTOR, NDCSpace, ndc_box, ndc_space, to_ndc
 from nerfmeta.render.rays import camera_rays, image_rays
 
 NDC_DEPTH_SCALE = 0.5
@@ -23,12 +23,16 @@ more (362 x 362 x 128), and a ray marches fewer samples (82 instead of 118 per t
 forward scene at 160 x 120)."""
 
 
-def fit_space(scene: Scene) -> Scene:
+def fit_space(scene: Scene, near_factor: float = BD_FACTOR) -> Scene:
     """The scene as a fit sees it: a forward-facing scene in NDC (its ``ndc`` set, ``bounds`` the NDC box
-    holding every pixel ray, ``near`` 0 and ``far`` the box's diagonal); any other scene unchanged."""
+    holding every pixel ray, ``near`` 0 and ``far`` the box's diagonal); any other scene unchanged.
+
+    ``near_factor``: the NDC near plane's distance as a fraction of the scene's near bound (see
+    :func:`~nerfmeta.render.ndc.ndc_space`; a run passes its recorded ``ndc_near_factor``)."""
     if scene.scene_type.kind != "forward" or scene.ndc is not None:
         return scene
-    space = ndc_space(scene.poses, scene.intrinsics, scene.height, scene.width, scene.near, depth_scale=NDC_DEPTH_SCALE)
+    space = ndc_space(scene.poses, scene.intrinsics, scene.height, scene.width, scene.near, depth_scale=NDC_DEPTH_SCALE,
+                      near_factor=near_factor)
     try:
         box = ndc_box(space, scene.poses, scene.intrinsics, scene.height, scene.width).float()
     except ValueError as err:

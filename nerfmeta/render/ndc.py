@@ -14,7 +14,8 @@ and the renderer's ``delta`` are then NDC lengths, and the colour's view directi
 
 Before the map the scene is moved LLFF's way (:class:`NDCSpace`): into the frame of the average
 camera (:func:`average_pose`, LLFF's ``poses_avg``) and scaled so the scene's near distance sits at
-``1 / bd_factor`` (NeRF's ``bd_factor = 0.75``) in front of the near plane ``n = 1``. Optionally the
+``1 / near_factor`` (NeRF's ``bd_factor = 0.75``) in front of the near plane ``n = 1``, so the
+near plane is at ``near_factor`` x the scene's near bound. Optionally the
 NDC depth axis is scaled by ``depth_scale`` (< 1: a grid of cubic voxels then has more voxels across
 than in depth, as DirectVoxGO's LLFF grids do).
 
@@ -33,7 +34,9 @@ from nerfmeta.render.rays import camera_rays
 MIN_FORWARD = 0.1
 """Smallest cosine between a pixel ray and the reference camera's axis that NDC takes (84 degrees)."""
 BD_FACTOR = 0.75
-"""The scene's near distance is scaled to ``1 / BD_FACTOR`` in front of the near plane (NeRF's LLFF setting)."""
+"""NeRF's LLFF setting: the scene's near distance is scaled to ``1 / BD_FACTOR`` in front of the near plane
+(the near plane sits at 0.75 x the scene's near bound). Runs record their own factor
+(``RunConfig.ndc_near_factor``); runs saved before it was recorded used this one."""
 
 
 def ndc_rays(
@@ -110,10 +113,11 @@ class NDCSpace:
 
     Attributes:
         reference: (4, 4) float64 camera-to-world of the reference camera (the average camera).
-        scale: world-to-reference length factor (the scene's near distance goes to ``1 / BD_FACTOR``).
+        scale: world-to-reference length factor (the scene's near distance goes to ``1 / near_factor``).
         focal_x, focal_y: the reference camera's focal lengths in pixels.
         width, height: its image size in pixels.
         depth_scale: factor on the NDC depth axis (the box's depth then spans ``[-depth_scale, depth_scale]``).
+        near_factor: the near plane's distance as a fraction of the scene's near bound (NeRF's ``bd_factor``).
     """
 
     reference: torch.Tensor
@@ -123,25 +127,35 @@ class NDCSpace:
     width: int
     height: int
     depth_scale: float = 1.0
+    near_factor: float = BD_FACTOR
+
+    @property
+    def scene_near(self) -> float:
+        """The scene's near bound (world units) the space was made from; the near plane is at ``near_factor`` x it."""
+        return 1.0 / (self.scale * self.near_factor)
 
     def as_json(self) -> dict:
         return {"reference": self.reference.tolist(), "scale": self.scale, "focal": [self.focal_x, self.focal_y],
-                "image": [self.width, self.height], "depth_scale": self.depth_scale}
+                "image": [self.width, self.height], "depth_scale": self.depth_scale, "near_factor": self.near_factor}
 
 
 def ndc_space(poses: torch.Tensor, intrinsics: torch.Tensor, height: int, width: int, near: float,
-              depth_scale: float = 1.0, bd_factor: float = BD_FACTOR) -> NDCSpace:
+              depth_scale: float = 1.0, near_factor: float = BD_FACTOR) -> NDCSpace:
     """The NDC space of a forward-facing scene (see :class:`NDCSpace`).
 
     Args:
         poses: (n, 4, 4) camera-to-world.
         intrinsics: (n, 4) ``(fx, fy, cx, cy)``; the first view's focal lengths are the reference camera's.
-        near: the scene's near distance (world units), scaled to ``1 / bd_factor``.
+        near: the scene's near distance (world units), scaled to ``1 / near_factor``.
+        near_factor: in (0, 1]: the near plane's distance as a fraction of ``near`` (NeRF: 0.75).
     """
     if near <= 0:
         raise ValueError(f"NDC needs a positive near distance, got {near}")
+    if not 0.0 < near_factor <= 1.0:
+        raise ValueError(f"NDC near factor must be in (0, 1], got {near_factor}")
     fx, fy = float(intrinsics[0, 0]), float(intrinsics[0, 1])
-    return NDCSpace(average_pose(poses.double()), 1.0 / (bd_factor * near), fx, fy, int(width), int(height), float(depth_scale))
+    return NDCSpace(average_pose(poses.double()), 1.0 / (near_factor * near), fx, fy, int(width), int(height),
+                    float(depth_scale), float(near_factor))
 
 
 def to_reference(space: NDCSpace, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
