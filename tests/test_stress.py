@@ -132,6 +132,42 @@ def test_check_results_flags_nan_low_and_mismatched_psnr() -> None:
     assert np.isfinite(rows[0].time_s)
 
 
+def test_scaled_surface_rows_must_keep_the_reference_chamfer() -> None:
+    """A scaled chair's surface row is checked against the unscaled one's Chamfer as well as its PSNR."""
+
+    def row(case: str, psnr: float, chamfer: float) -> CaseResult:
+        return CaseResult(case, "sdf", "ok", psnr, [], False, 0.1, chamfer_pct=chamfer)
+
+    results = [row("sdf, a generated chair (reference)", 20.0, 1.0), row("sdf, chair x 1e-3", 20.1, 1.3),
+               row("sdf, chair x 1e3", 20.1, 1.7)]
+    check_results(results)
+    outcome = {r.case: r for r in results}
+    assert outcome["sdf, chair x 1e-3"].ok and outcome["sdf, chair x 1e-3"].chamfer_gap == pytest.approx(0.3)
+    assert "Chamfer +0.70 points" in outcome["sdf, chair x 1e3"].outcome and not outcome["sdf, chair x 1e3"].ok
+    assert "Chamfer +0.30 points" in format_table(results)[3]
+
+
+def test_a_scaled_generated_scene_carries_its_scaled_exact_surface(tmp_path: Path) -> None:
+    """The x1e3 chair's truth is the chair's exact SDF scaled by 1e3: its zero set is the original's times 1e3."""
+    import dataclasses
+
+    from nerfmeta.geometry.truth import sample_sdf_surface
+
+    case = next(c for c in CASES if c.name == "sdf, chair x 1e3")
+    reference = next(c for c in CASES if c.name == "sdf, a generated chair (reference)")
+    settings = dataclasses.replace(QUICK, n_train=2, n_test=1)
+    folder = case.build(tmp_path / "large", settings)
+    ref_folder = reference.build(tmp_path / "ref", settings)
+    (sdf, box), (sdf1, box1) = case.truth(folder), reference.truth(ref_folder)
+    np.testing.assert_allclose(box, 1e3 * box1)
+    large = sample_sdf_surface(sdf, box, 2000, resolution=48, seed=0)
+    small = sample_sdf_surface(sdf1, box1, 2000, resolution=48, seed=0)
+    np.testing.assert_allclose(large.points, 1e3 * small.points, rtol=1e-5, atol=1e-3)
+    assert float(sdf1(torch.as_tensor(small.points)).abs().max()) < 1e-4 * float(np.linalg.norm(box1[1] - box1[0]))
+    poses = [json.loads((f / "transforms_train.json").read_text())["frames"][0]["transform_matrix"] for f in (folder, ref_folder)]
+    np.testing.assert_allclose(np.asarray(poses[0])[:3, 3], 1e3 * np.asarray(poses[1])[:3, 3], rtol=1e-6)
+
+
 def test_nan_watch_notes_the_first_non_finite_loss_or_parameter() -> None:
     model = torch.nn.Linear(2, 1)
     watch = NanWatch()

@@ -52,12 +52,17 @@ from nerfmeta.fields.registry import default_config
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME
 from nerfmeta.fit.loop import FitConfig, StepRecord
 from nerfmeta.fit.run import RunConfig, run_fit
+from nerfmeta.geometry.metrics import GeometryConfig
 from nerfmeta.io import load_tensors, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
 MAX_PSNR_GAP = 0.5
 """A scaled or translated scene must fit to within this many dB of the original."""
+MAX_CHAMFER_GAP = 0.5
+"""A scaled surface scene must also be within this many points of Chamfer (% of the bounding-box diagonal) of the original."""
+STRESS_GEOMETRY = GeometryConfig(n_points=100000, resolution=128, floor=False)
+"""How the surface rows are measured: marching cubes at 128^3, 100k points a surface (sampling floor ~0.2 %)."""
 NAN_WORDS = ("nan loss", "inf loss", "non-finite", "not finite", "NaN in", "nan in")
 """Phrases of an error message that report a NaN or inf (the guard's and the checkpoint writer's)."""
 
@@ -291,6 +296,13 @@ class StressCase:
     expect_error: str | None = None
     """For an input that cannot be fitted: the error type name the case must raise (a clear one-line
     error is then the right outcome, ``ok``)."""
+    truth: TruthFn | None = None
+    """The exact surface of the case's scene (its folder -> SDF and box, file frame): the fit's mesh gets a
+    Chamfer distance (:data:`STRESS_GEOMETRY`), compared with the reference's within :data:`MAX_CHAMFER_GAP`."""
+
+
+TruthFn = Callable[[Path], tuple[Callable[[torch.Tensor], torch.Tensor], np.ndarray]]
+"""A case folder -> the exact SDF (points (N, 3) -> (N,)) of its scene and its (2, 3) box, in the file's frame."""
 
 
 def lr_times(factor: float) -> ModelChange:
@@ -385,6 +397,48 @@ def _generated(category: str) -> SceneBuilder:
     return build
 
 
+def _generated_scaled(category: str, scale: float) -> tuple[SceneBuilder, TruthFn]:
+    """A generated scene of ``category`` with every length times ``scale``, and its exact SDF scaled alike.
+
+    The scene is generated beside the case folder (``<folder>-original``) and copied by
+    :func:`transform_blender_scene`; the copy is outside any collection, so its truth comes from the
+    original's SDF: ``f_s(x) = scale * f(x / scale)``.
+    """
+    generate = _generated(category)
+
+    def original(folder: Path) -> Path:
+        return folder.with_name(folder.name + "-original") / category / f"{category}_000"
+
+    def build(folder: Path, s: StressSettings) -> Path:
+        generate(folder.with_name(folder.name + "-original"), s)
+        return transform_blender_scene(original(folder), folder, scale=scale)
+
+    def truth(folder: Path) -> tuple[Callable[[torch.Tensor], torch.Tensor], np.ndarray]:
+        from nerfmeta.geometry.truth import scene_sdf_of
+
+        sdf, box = scene_sdf_of(original(folder))
+        return (lambda x: scale * sdf(x / scale)), np.asarray(box, dtype=np.float64) * scale
+
+    return build, truth
+
+
+def surface_chamfer(run: Path, truth: tuple[Callable[[torch.Tensor], torch.Tensor], np.ndarray]) -> float:
+    """Chamfer distance (% of the bounding-box diagonal) of a fitted run's mesh against an exact SDF (file frame)."""
+    from nerfmeta.geometry.load import load_run_model
+    from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame
+    from nerfmeta.geometry.truth import sample_sdf_surface
+
+    sdf, box = truth
+    gt = sample_sdf_surface(sdf, box, STRESS_GEOMETRY.n_points, resolution=STRESS_GEOMETRY.resolution, seed=STRESS_GEOMETRY.seed)
+    model, scene = load_run_model(run)
+    mesh = mesh_in_file_frame(model, scene, STRESS_GEOMETRY.resolution, colors=False)
+    return float(evaluate_mesh(mesh, gt, STRESS_GEOMETRY).chamfer_pct_diagonal)
+
+
+_CHAIR = _generated_scaled("chair", 1.0)
+_CHAIR_SMALL = _generated_scaled("chair", 1e-3)
+_CHAIR_LARGE = _generated_scaled("chair", 1e3)
+
 FAR_OFF = (1000.0, 0.0, 0.0)
 FAR_FAR_OFF = (1e6, 0.0, 0.0)
 
@@ -417,6 +471,11 @@ CASES: tuple[StressCase, ...] = (
     StressCase("sdf, poses x 1e-3", _transformed(1e-3, (0.0, 0.0, 0.0)), backbones=("sdf",), reference="sdf (reference)", quick=False),
     StressCase("sdf, poses x 1e3", _transformed(1e3, (0.0, 0.0, 0.0)), backbones=("sdf",), reference="sdf (reference)", quick=False),
     StressCase("thin parts (a chair)", _generated("chair"), backbones=("sdf", "nerf"), min_psnr=8.0, quick=False),
+    StressCase("sdf, a generated chair (reference)", _CHAIR[0], backbones=("sdf",), min_psnr=8.0, quick=False, truth=_CHAIR[1]),
+    StressCase("sdf, chair x 1e-3", _CHAIR_SMALL[0], backbones=("sdf",), min_psnr=8.0, quick=False, truth=_CHAIR_SMALL[1],
+               reference="sdf, a generated chair (reference)"),
+    StressCase("sdf, chair x 1e3", _CHAIR_LARGE[0], backbones=("sdf",), min_psnr=8.0, quick=False, truth=_CHAIR_LARGE[1],
+               reference="sdf, a generated chair (reference)"),
     StressCase("hash table of 4 entries", _tiny(), backbones=("sdf", "nerf"), model=set_fields(encoding="hash", hash_log2_size=2),
                min_psnr=8.0, quick=False),
     StressCase("Fourier sigma 1e3", _tiny(), backbones=("sdf", "nerf"), model=set_fields(encoding="fourier", fourier_sigma=1000.0),
@@ -451,6 +510,10 @@ class CaseResult:
     psnr_gap: float | None = None
     """Test PSNR minus the reference case's, for cases with a reference (or a ``no normalisation`` twin)."""
     note: str = ""
+    chamfer_pct: float | None = None
+    """Chamfer distance of the fit's surface (% of the diagonal), for cases with a ``truth``."""
+    chamfer_gap: float | None = None
+    """``chamfer_pct`` minus the reference case's (percentage points)."""
 
     @property
     def ok(self) -> bool:
@@ -502,7 +565,10 @@ def _fit_case(case: StressCase, backbone: str, settings: StressSettings, scene: 
     if norm and (norm["scale"] != 1.0 or any(norm["offset"])):
         result.note = f"normalised: scale {norm['scale']:.4g}, offset [{', '.join(f'{v:.4g}' for v in norm['offset'])}]"
     geometry = summary.get("geometry") or {}
-    if "chamfer_pct_diagonal" in geometry:
+    if case.truth is not None:  # measured the same way for a case and its reference, scaled or not
+        result.chamfer_pct = surface_chamfer(out, case.truth(scene))
+        result.note = (result.note + "; " if result.note else "") + f"Chamfer {result.chamfer_pct:.2f}% of the diagonal (128^3, 100k points)"
+    elif "chamfer_pct_diagonal" in geometry:
         result.note = (result.note + "; " if result.note else "") + f"Chamfer {geometry['chamfer_pct_diagonal']:.2f}% of the diagonal"
     return result
 
@@ -569,13 +635,15 @@ def run_case(case: StressCase, backbone: str, settings: StressSettings, workdir:
 
 
 def check_results(results: Sequence[CaseResult], cases: Sequence[StressCase] = CASES) -> None:
-    """Apply the PSNR checks in place: finite, at least ``min_psnr``, within the reference's gap.
+    """Apply the PSNR checks in place: finite, at least ``min_psnr``, within the reference's gap (and, for
+    surface cases with a ``truth``, a Chamfer within :data:`MAX_CHAMFER_GAP` of the reference's).
 
     Also fills ``psnr_gap`` of the ``no normalisation`` rows (against the normalised twin), for
     information.
     """
     by_name = {c.name: c for c in cases}
     psnr = {(r.case, r.backbone): r.test_psnr for r in results}
+    chamfer = {(r.case, r.backbone): r.chamfer_pct for r in results}
     for r in results:
         case = by_name[r.case]
         if case.expect_error is not None:
@@ -590,6 +658,11 @@ def check_results(results: Sequence[CaseResult], cases: Sequence[StressCase] = C
             r.psnr_gap = r.test_psnr - psnr[(twin, r.backbone)]
             if r.ok and case.reference is not None and abs(r.psnr_gap) > MAX_PSNR_GAP:
                 r.outcome = f"test PSNR {r.psnr_gap:+.2f} dB from {case.reference}, more than {MAX_PSNR_GAP:g} dB"
+        ref_chamfer = chamfer.get((case.reference, r.backbone))
+        if r.chamfer_pct is not None and ref_chamfer is not None:
+            r.chamfer_gap = r.chamfer_pct - ref_chamfer
+            if r.ok and abs(r.chamfer_gap) > MAX_CHAMFER_GAP:
+                r.outcome = f"Chamfer {r.chamfer_gap:+.2f} points from {case.reference}, more than {MAX_CHAMFER_GAP:g}"
 
 
 def run_table(
@@ -631,6 +704,8 @@ def format_table(results: Sequence[CaseResult]) -> list[str]:
     for r in results:
         psnr = "-" if r.test_psnr is None else f"{r.test_psnr:.2f}"
         gap = "" if r.psnr_gap is None else f"{r.psnr_gap:+.2f}"
+        if r.chamfer_gap is not None:
+            gap += f"; Chamfer {r.chamfer_gap:+.2f} points"
         if r.guard_events is None:
             guard = "n/a"
         elif not r.guard_events:
