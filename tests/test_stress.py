@@ -180,3 +180,18 @@ def test_nan_watch_notes_the_first_non_finite_loss_or_parameter() -> None:
     other = NanWatch()
     other(StepRecord(iter=5, time_s=0.0, train_psnr=float("nan"), samples_per_ray=1.0, lr_scale=1.0), torch.nn.Linear(2, 1), None)
     assert other.first == "iter 5: training PSNR nan"
+
+
+def test_a_case_scene_below_its_folder_is_found_again_by_the_next_backbone(tmp_path: Path) -> None:
+    """A generated chair is written once (collection root = the case folder) and its scene path, one level
+    below, is what every backbone fits (the second backbone used to get the collection root)."""
+    import dataclasses
+
+    from benchlib.stress import _built_scene
+
+    case = next(c for c in CASES if c.name == "thin parts (a chair)")
+    settings = dataclasses.replace(QUICK, n_train=2, n_test=1)
+    first = _built_scene(case, tmp_path / "chair", settings)
+    again = _built_scene(case, tmp_path / "chair", settings)
+    assert first == again == tmp_path / "chair" / "chair" / "chair_000"
+    assert load_scene(again).n_views == 3

@@ -604,6 +604,20 @@ def _meta_case(case: StressCase, backbone: str, settings: StressSettings, folder
     return result
 
 
+def _built_scene(case: StressCase, folder: Path, settings: StressSettings) -> Path:
+    """The case's scene, written into ``folder`` by its first backbone and reused by the next ones.
+
+    A builder may return a path below ``folder`` (a generated collection's scene), so the path it
+    returned is kept beside the folder (``<folder>.scene``) rather than assumed to be the folder.
+    """
+    record = folder.with_name(folder.name + ".scene")
+    if folder.exists() and record.is_file():
+        return Path(record.read_text())
+    scene = case.build(folder, settings)  # type: ignore[misc]
+    record.write_text(str(scene))
+    return scene
+
+
 def run_case(case: StressCase, backbone: str, settings: StressSettings, workdir: Path) -> CaseResult:
     """Write the case's scene under ``workdir``, fit it with ``backbone`` and check the outcome.
 
@@ -618,7 +632,7 @@ def run_case(case: StressCase, backbone: str, settings: StressSettings, workdir:
         if case.meta_algo is not None:
             result = _meta_case(case, backbone, settings, folder, out)
         else:
-            scene = folder if folder.exists() else case.build(folder, settings)  # type: ignore[misc]
+            scene = _built_scene(case, folder, settings)
             result = _fit_case(case, backbone, settings, scene, out)
         if case.expect_error is not None:
             result.outcome = f"ran, but {case.expect_error} was expected"
