@@ -95,6 +95,7 @@ def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mu
     assert doc["chamfer"] == pytest.approx(0.5 * (doc["accuracy"] + doc["completeness"]))
     assert 0 < doc["floor_pct_diagonal"] < doc["chamfer_pct_diagonal"]  # an early sphere is far from the mug
     assert doc["topology"]["components"] >= doc["topology"]["main_components"] >= 1
+    assert doc["concavity"]["hidden_fraction"] > 0 and 0 <= doc["concavity"]["carved"] <= 1
     assert geometry["floor_pct_diagonal"] > 0 and geometry["topology"]["main_components"] >= 1
     # against its own mesh, the run's surface is far closer than against the truth
     assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
@@ -129,3 +130,44 @@ def test_category_pretrain_and_transfer_work_on_the_sdf(mug_scene, tmp_path):
                  "--batch-rays", "64", "--renders", "0", "--freeze", "2"]) == 0
     summary = json.loads((run / "summary.json").read_text())
     assert summary["init"] == "category" and summary["frozen_layers"] == ["sdf.0", "sdf.1"]
+
+
+def test_carved_fraction_exact_small_case():
+    from nerfmeta.geometry.concavity import carved_fraction
+
+    in_hull = torch.tensor([True, True, True, True, False, False])
+    free = torch.tensor([True, True, False, True, True, False])
+    outside = torch.tensor([True, False, False, True, True, True])
+    figures = carved_fraction(in_hull, free, outside)
+    assert figures.n_hidden == 3 and figures.hidden_fraction == 0.75 and figures.carved == pytest.approx(2 / 3)
+
+
+class _StubSdf(torch.nn.Module):
+    """A 'fitted' SDF that is a given function of world points (what ``surface_function`` reads)."""
+
+    def __init__(self, fn):
+        super().__init__()
+        self.fn = fn
+
+    def sdf_world(self, points):
+        return self.fn(points)
+
+
+def test_a_mug_has_a_hidden_cavity_the_truth_carves_and_a_filled_cup_does_not(mug_scene):
+    from nerfmeta.data.registry import load_scene
+    from nerfmeta.geometry.concavity import concavity_figures
+    from nerfmeta.geometry.truth import scene_sdf_of
+
+    scene = load_scene(mug_scene)
+    sdf, _ = scene_sdf_of(mug_scene)
+    norm = scene.normalization
+
+    def truth_loaded(p):  # the exact surface, in the loaded frame, as a perfect fit would hold it
+        offset = torch.as_tensor(norm.offset, dtype=torch.float64)
+        return (sdf((p.double() - offset) / float(norm.scale)) * float(norm.scale)).float()
+
+    exact = concavity_figures(_StubSdf(truth_loaded), scene, sdf, n_points=20000)
+    assert exact.hidden_fraction > 0.2 and exact.n_hidden > 100  # the cup's inside is in every view's silhouette
+    assert exact.carved > 0.99
+    filled = concavity_figures(_StubSdf(lambda p: torch.full(p.shape[:1], -1.0)), scene, sdf, n_points=20000)
+    assert filled.carved == 0.0 and filled.n_hidden == exact.n_hidden

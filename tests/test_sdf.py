@@ -10,7 +10,7 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition, total_loss
 from nerfmeta.fields.registry import build_model
-from nerfmeta.fields.sdf import SdfConfig, SdfField, neus_tau
+from nerfmeta.fields.sdf import SdfConfig, SdfField, annealed_cos, neus_tau
 
 TINY = SdfConfig(depth=2, width=32, feature_dim=4, color_depth=1, color_width=8, n_samples=16, pos_freqs=2, dir_freqs=1,
                  occupancy=False, hash_levels=3, hash_log2_size=8, hash_base_res=2, hash_finest_res=16, nffb_width=4,
@@ -43,6 +43,29 @@ def test_neus_tau_is_zero_going_out_and_finite_far_inside():
     s = torch.tensor(1e6)
     tau = neus_tau(torch.tensor([0.5, -50.0, 0.0]), torch.tensor([0.0, -1.0, -1.0]), torch.tensor([0.1, 0.1, 0.1]), s)
     assert tau[0] == 0.0 and torch.isfinite(tau).all() and tau[2] > 10.0  # a crossing at this s is opaque
+
+
+def test_annealed_cos_exact_small_case():
+    cos = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0])
+    torch.testing.assert_close(annealed_cos(cos, 0.0), torch.tensor([-1.0, -0.75, -0.5, -0.25, 0.0]))
+    torch.testing.assert_close(annealed_cos(cos, 0.5), torch.tensor([-1.0, -0.625, -0.25, -0.125, 0.0]))
+    torch.testing.assert_close(annealed_cos(cos, 1.0), torch.tensor([-1.0, -0.5, 0.0, 0.0, 0.0]))
+
+
+def test_cos_anneal_follows_the_steps_and_softens_back_faces():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "cos_anneal_iters": 100}), BOX, seed=0)
+    assert model.cos_anneal_ratio == 1.0  # a model no fit steps renders exactly
+    model.begin_step(0, None)
+    assert model.cos_anneal_ratio == 0.0
+    with torch.no_grad():
+        soft = model(rays(), background=torch.ones(3)).acc
+    model.begin_step(25, None)
+    assert model.cos_anneal_ratio == 0.25
+    model.begin_step(500, None)
+    assert model.cos_anneal_ratio == 1.0
+    with torch.no_grad():
+        exact = model(rays(), background=torch.ones(3)).acc
+    assert bool((soft >= exact - 1e-6).all()) and float((soft - exact).max()) > 1e-3  # leaving sections are partly opaque
 
 
 @pytest.mark.parametrize("encoding", ["pe", "fourier", "hash", "nffb", "stylemod-nffb"])

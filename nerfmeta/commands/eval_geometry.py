@@ -20,7 +20,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "nearest-neighbour distances below --threshold), Chamfer = their mean, F-score at --tolerance and normal "
             "consistency, in the scene file's units and as %% of the ground truth's bounding-box diagonal, beside the "
             "sampling floor (the Chamfer of two samplings of the ground truth: what a perfect surface scores) and the "
-            "mesh's topology (components, genus). --gt is a "
+            "mesh's topology (components, genus) and, for a generated scene, how much of its hidden concavity "
+            "(free space inside every view's silhouette, e.g. a cup's inside) the surface leaves open. --gt is a "
             "generated scene (its exact SDF, sampled on the zero level set) or a PLY/OBJ mesh."
         ),
     )
@@ -32,9 +33,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from nerfmeta.geometry.concavity import concavity_figures
     from nerfmeta.geometry.load import load_run_model
     from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame, topology_summary
-    from nerfmeta.geometry.truth import ground_truth
+    from nerfmeta.geometry.truth import ground_truth, scene_sdf_of
     from nerfmeta.paths import check_output_file, write_output_json
 
     config = build_config(GeometryConfig, given_values(args, GeometryConfig))
@@ -45,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
     mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
     doc = {**dataclasses.asdict(evaluate_mesh(mesh, gt, config, twin)), "ground_truth": gt.source, "run": args.run,
            "resolution": config.resolution, "topology": topology_summary(mesh)}
+    exact = scene_sdf_of(args.gt)
+    if exact is not None and scene.alphas is not None:
+        doc["concavity"] = dataclasses.asdict(concavity_figures(model, scene, exact[0], seed=config.seed))
     if json_out is not None:
         write_output_json(json_out, doc, option="--json-out")
     json.dump(doc, sys.stdout, indent=2)

@@ -11,8 +11,9 @@ same weights mean the same shape at any scene scale.
 
 Rendering (NeuS): the shared :class:`~nerfmeta.render.estimators.OccupancyGrid` marches the box;
 each sample's SDF ``f``, its gradient and the ray direction give the section's estimated SDF at
-both ends, ``f -+ cos * delta / 2`` (``cos = min(d . n, 0)``, NeuS's annealed form at its end), and
-the discrete opacity ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with the logistic
+both ends, ``f -+ cos * delta / 2`` (``cos``: NeuS's annealed slope, :func:`annealed_cos`, exactly
+``min(d . n, 0)`` once ``cos_anneal_iters`` have passed, or from the start by default), and the
+discrete opacity ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with the logistic
 ``Phi(f) = sigmoid(s f)`` of a learned inverse standard deviation ``s = exp(10 * variance)``
 (:func:`neus_tau` gives its optical depth exactly in log space). The compositor is
 :func:`~nerfmeta.render.volume.render_packed`, as for every backbone.
@@ -49,6 +50,26 @@ TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.
 """Directions of the 4-point numerical gradient (NeuS2's tetrahedron)."""
 
 
+def annealed_cos(true_cos: torch.Tensor, ratio: float) -> torch.Tensor:
+    """NeuS's ``iter_cos``: the slope of the SDF along a ray that the opacity uses, annealed from soft to exact.
+
+    ``-((1 - ratio) * relu(0.5 - 0.5 cos) + ratio * relu(-cos))``: at ``ratio`` 1 it is ``min(cos, 0)``
+    (only sections where the SDF falls are opaque); at 0 every section gets a slope of at least
+    ``-(1 - cos) / 2``, so back-facing and grazing sections stay partly opaque early in a fit, and
+    the surface can still move and change topology before the density sharpens.
+
+    Args:
+        true_cos: (M,) ``d . grad f`` per sample.
+        ratio: in [0, 1], the fraction of the anneal done.
+
+    Returns:
+        (M,) non-positive slopes.
+    """
+    if ratio >= 1.0:
+        return torch.clamp(true_cos, max=0.0)
+    return -((1.0 - ratio) * F.relu(0.5 - 0.5 * true_cos) + ratio * F.relu(-true_cos))
+
+
 def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
     """NeuS's discrete opacity of a section as an optical depth ``tau = -log(1 - alpha)``.
 
@@ -59,7 +80,7 @@ def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: t
 
     Args:
         sdf: (M,) signed distance at the section's middle.
-        cos: (M,) ``min(d . grad f, 0)`` (NeuS's fully annealed ``iter_cos``).
+        cos: (M,) the slope along the ray, :func:`annealed_cos` (``min(d . grad f, 0)`` when fully annealed).
         delta: (M,) section lengths, in the SDF's units.
         inv_s: () inverse standard deviation ``s`` of the logistic density.
 
@@ -121,6 +142,8 @@ class SdfConfig(EncodingChoice):
     """Adam learning rate of the SDF and colour networks."""
     variance_lr: float = 1e-3
     """Adam learning rate of the variance: each step moves ``s`` by at most a factor ``exp(10 variance_lr)`` (NeuS: the networks' rate)."""
+    cos_anneal_iters: int = 0
+    """Steps over which NeuS's cos anneal goes from soft to exact (:func:`annealed_cos`; 0: exact from the start)."""
 
     def __post_init__(self) -> None:
         checks = (
@@ -132,7 +155,7 @@ class SdfConfig(EncodingChoice):
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
-            ("variance_lr", 0.0 <= self.variance_lr < math.inf),
+            ("variance_lr", 0.0 <= self.variance_lr < math.inf), ("cos_anneal_iters", self.cos_anneal_iters >= 0),
         )
         for name, ok in checks:
             if not ok:
@@ -199,6 +222,8 @@ class SdfField(RadianceModel):
         cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
         self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
         self.occupancy = OccupancyGrid(self._box())
+        self.cos_anneal_ratio = 1.0
+        """Fraction of the cos anneal done: set by :meth:`begin_step` (a fit), 1 for a model no fit steps (loaded, meta-learned)."""
 
     def _geometric_init(self, in_dim: int) -> None:
         """SAL/IDR's geometric initialisation: the SDF starts as a sphere of radius ``init_radius``.
@@ -327,7 +352,7 @@ class SdfField(RadianceModel):
         ev = self.evaluate(self.to_box(samples.points(rays.origins, rays.directions)),
                            laplacian=train and self.config.curvature_weight > 0.0)
         d = rays.directions.index_select(0, samples.ray_idx).to(ev.grad.dtype)
-        cos = torch.clamp((d * ev.grad).sum(-1), max=0.0)
+        cos = annealed_cos((d * ev.grad).sum(-1), self.cos_anneal_ratio)
         tau = neus_tau(ev.sdf, cos, samples.delta / self.half_side(), self.inv_s())
         directions = rays.directions if view_dirs is None else view_dirs
         comp = render_packed(tau, samples.t, samples.ray_idx, samples.far, background,
@@ -361,9 +386,10 @@ class SdfField(RadianceModel):
     # -- structure -----------------------------------------------------------------------------
 
     def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
-        """Refresh the occupancy grid every ``occupancy_every`` steps after the warm-up: a corner is
-        occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
+        """Advance the cos anneal; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
+        a corner is occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
         cfg = self.config
+        self.cos_anneal_ratio = min(1.0, step / cfg.cos_anneal_iters) if cfg.cos_anneal_iters else 1.0
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
         margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
