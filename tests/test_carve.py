@@ -265,3 +265,50 @@ def test_unknown_points_start_at_scratchs_alpha():
     levels = torch.tensor([HULL_ALPHA, model.config.coarse_alpha_init, EMPTY_ALPHA])
     nearest = ((alpha[:, None] - levels).abs() / levels).argmin(1)
     assert torch.allclose(alpha, levels[nearest], rtol=1e-3) and set(nearest.tolist()) == {0, 1, 2}
+
+
+def bowl_views(n: int = 24) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poses, intrinsics, images (n, H, W, 3) on white and alphas of an open bowl: the lower half (z < 0) of a sphere
+    shell of RADIUS, open at the top, both of its sides coloured by the position of the point seen (a texture, so
+    a surface point looks the same from every view and a point of the empty bowl does not). Views from all around,
+    a third of them from high above (looking into the bowl), a third from below."""
+    angles = torch.arange(n, dtype=torch.float32) * (2 * math.pi / n)
+    heights = torch.tensor([2.5, 0.3, -1.5]).repeat(n)[:n]
+    eyes = torch.stack([3 * torch.cos(angles), 3 * torch.sin(angles), heights], -1)
+    poses = look_at(eyes, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    intrinsics = torch.tensor([FOCAL, FOCAL, SIZE / 2, SIZE / 2]).expand(n, 4)
+    images, alphas = [], []
+    for pose, k in zip(poses, intrinsics):
+        o, d = image_rays(pose, k, SIZE, SIZE)
+        b = (o * d).sum(-1)
+        disc = b**2 - ((o * o).sum(-1) - RADIUS**2)
+        root = disc.clamp(min=0).sqrt()
+        hits = []
+        for t in (-b - root, -b + root):  # the outer side first, then the inner one (through the open top)
+            p = o + t[..., None] * d
+            hits.append((disc > 0) & (t > 0) & (p[..., 2] < 0))
+        t = torch.where(hits[0], -b - root, -b + root)
+        hit = hits[0] | hits[1]
+        p = o + t[..., None] * d
+        colour = 0.5 + 0.5 * torch.stack([torch.sin(6 * p[..., 0]), torch.cos(6 * p[..., 1]), torch.sin(6 * p[..., 2])], -1)
+        a = hit.float()
+        images.append(a[..., None] * colour + (1 - a[..., None]))
+        alphas.append(a)
+    return poses, intrinsics, torch.stack(images), torch.stack(alphas)
+
+
+def test_photo_consistency_empties_a_bowl_the_visual_hull_fills():
+    """The visual hull of an open bowl is a solid half ball; the bowl's inside is empty space that views from above see
+    through and views from the side do not: its points project to colours that disagree, and are carved away."""
+    poses, k, images, alphas = bowl_views()
+    pts = grid_points(torch.tensor([[-0.6] * 3, [0.6] * 3]), (25, 25, 25)).reshape(-1, 3)
+    voxel = 1.2 / 24
+    hull = carve(pts, images, alphas, poses, k, torch.ones(3), voxel=voxel, consistency=0.0, size=(25, 25, 25))
+    start = carve(pts, images, alphas, poses, k, torch.ones(3), voxel=voxel, size=(25, 25, 25), consistency=0.3)
+    r = torch.linalg.vector_norm(pts, dim=-1)
+    inside = (r < 0.7 * RADIUS) & (pts[:, 2] < -0.1 * RADIUS) & (pts[:, 2] > -0.6 * RADIUS)  # the empty bowl
+    shell = ((r - RADIUS).abs() < 0.5 * voxel) & (pts[:, 2] < -0.3 * RADIUS)
+    assert bool(hull.occupied[inside].all())  # the silhouettes cannot cut it
+    assert float(start.occupied[inside].float().mean()) < 0.5
+    assert bool(start.doubtful[inside & ~start.occupied].all())  # what is carved away is doubtful
+    assert float(start.occupied[shell].float().mean()) > 0.9  # the bowl itself stays
