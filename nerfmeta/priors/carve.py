@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import torch
 
 from nerfmeta.data.scene_type import border_pixels
-from nerfmeta.render.rays import image_rays
 
 ALPHA_FOREGROUND = 0.5
 """A pixel is foreground when its alpha exceeds this."""
@@ -46,15 +45,6 @@ not hull: few silhouettes cut little (on lego, whose cameras look down from a he
 object made the fine box 48 % of the scene box against scratch's 3.7 %). Unknown points start as scratch's do."""
 MISS_EVERY = 8
 """... and at most one per this many views that see it (a point seen by few views gets no benefit of the doubt)."""
-CONSISTENCY_THRESHOLD = 0.1
-"""Photo-consistency: a hull point whose colours, over the views that see it unoccluded, spread by more than this (root
-mean square distance from their mean, RGB in [0, 1]) is not on a surface and is carved away."""
-CONSISTENCY_MIN_VIEWS = 3
-"""Fewest views that must see a hull point unoccluded for its photo-consistency to be judged."""
-CONSISTENCY_ROUNDS = 8
-"""Most rounds of photo-consistency carving (each round exposes the points behind those it removed)."""
-DEPTH_TOLERANCE_VOXELS = 1.5
-"""A point is unoccluded in a view when it lies within this many voxels behind the nearest hull point at its pixel."""
 
 
 @dataclass(frozen=True)
@@ -85,7 +75,6 @@ class CarveStart:
         hull_fraction: fraction of the points inside the hull.
         silhouettes: where the masks came from.
         margin_px: pixels the masks were dilated by.
-        doubtful: (N,) bool, points of the visual hull that photo-consistency carved away.
     """
 
     occupied: torch.Tensor
@@ -94,7 +83,6 @@ class CarveStart:
     hull_fraction: float
     silhouettes: Silhouettes
     margin_px: int = 1
-    doubtful: torch.Tensor | None = None
 
 
 def uniform_background(images: torch.Tensor, *, tolerance: float = BACKGROUND_TOLERANCE,
@@ -227,103 +215,8 @@ def mean_colour(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor,
     return torch.cat(out)
 
 
-def first_hits(occupied: torch.Tensor, bounds: torch.Tensor, poses: torch.Tensor, intrinsics: torch.Tensor,
-               pixels: torch.Tensor, shape: tuple[int, int], *, chunk: int = 1 << 12) -> torch.Tensor:
-    """Distance from each camera to the first ``occupied`` voxel along the centre ray of each selected pixel.
-
-    Args:
-        occupied: (X, Y, Z) bool, on the corners of a grid spanning ``bounds`` (2, 3) (a sample is in the corner it
-            is nearest to).
-        poses: (V, 4, 4); intrinsics: (V, 4).
-        pixels: (V, H, W) bool, the pixels to march (the others get inf).
-        shape: (H, W).
-
-    Returns:
-        (V, H * W) distance along the unit ray to the first occupied sample (marching every half voxel), inf where
-        the ray meets none.
-    """
-    h, w = shape
-    size = torch.tensor(occupied.shape, device=bounds.device)
-    voxel = (bounds[1] - bounds[0]) / (size - 1).clamp(min=1)
-    step = 0.5 * float(voxel.min())
-    out = torch.full((poses.shape[0], h * w), math.inf, device=bounds.device)
-    for v in range(poses.shape[0]):
-        sel = pixels[v].reshape(-1).nonzero()[:, 0]
-        if sel.numel() == 0:
-            continue
-        o, d = image_rays(poses[v], intrinsics[v], h, w)
-        o, d = o.reshape(-1, 3)[sel], d.reshape(-1, 3)[sel]
-        inv = 1.0 / torch.where(d.abs() < 1e-9, torch.full_like(d, 1e-9), d)
-        t0, t1 = (bounds[0] - o) * inv, (bounds[1] - o) * inv
-        near = torch.minimum(t0, t1).amax(-1).clamp(min=0.0)
-        far = torch.maximum(t0, t1).amin(-1)
-        n = max(1, int(math.ceil(float((far - near).max().clamp(min=0.0)) / step)) + 1)
-        for part in torch.arange(sel.numel(), device=bounds.device).split(max(1, chunk // n * 16)):
-            t = near[part, None] + step * torch.arange(n, device=bounds.device)  # (r, n)
-            p = o[part, None] + t[..., None] * d[part, None]
-            idx = ((p - bounds[0]) / voxel).round().long()
-            inside = ((idx >= 0) & (idx < size)).all(-1) & (t <= far[part, None])
-            idx = idx.clamp(min=torch.zeros_like(size), max=size - 1)
-            hit = inside & occupied[idx[..., 0], idx[..., 1], idx[..., 2]]
-            first = torch.where(hit, t, torch.full_like(t, math.inf)).amin(-1)
-            out[v, sel[part]] = first
-    return out
-
-
-def photo_consistent(occupied: torch.Tensor, bounds: torch.Tensor, masks: torch.Tensor, images: torch.Tensor,
-                     poses: torch.Tensor, intrinsics: torch.Tensor, *, threshold: float = CONSISTENCY_THRESHOLD,
-                     rounds: int = CONSISTENCY_ROUNDS) -> torch.Tensor:
-    """The ``occupied`` (X, Y, Z) hull points that survive photo-consistency carving (space carving), (X, Y, Z) bool.
-
-    A hull point seen unoccluded (within :data:`DEPTH_TOLERANCE_VOXELS` voxels of the first hull point along its
-    pixel's ray) on the foreground of at least :data:`CONSISTENCY_MIN_VIEWS` views must project to colours that agree
-    (spread at most ``threshold``); one that does not lies in empty space the silhouettes could not cut (the inside
-    of a lamp's shade: grey from the side, the bulb's colour from above) and is removed. Removing points exposes the
-    ones behind them, so this repeats for up to ``rounds`` rounds, or until none is removed.
-
-    Args:
-        occupied: (X, Y, Z) bool on the corners of a grid spanning ``bounds`` (2, 3).
-        masks: (V, H, W) bool foreground; images: (V, H, W, 3); poses: (V, 4, 4); intrinsics: (V, 4).
-    """
-    from nerfmeta.render.estimators import grid_points
-
-    v, h, w = masks.shape
-    flat_images = images.reshape(v, -1, 3)
-    points = grid_points(bounds, tuple(occupied.shape)).reshape(-1, 3)
-    tolerance = DEPTH_TOLERANCE_VOXELS * float(((bounds[1] - bounds[0]) / (torch.tensor(occupied.shape) - 1).clamp(min=1)).max())
-    keep = occupied.reshape(-1).clone()
-    for _ in range(rounds):
-        idx = keep.nonzero()[:, 0]
-        flat, _, fg = lookup(points[idx], masks, poses, intrinsics)
-        hits = first_hits(keep.view(occupied.shape), bounds, poses, intrinsics, masks, (h, w))
-        distance = torch.linalg.vector_norm(points[idx][None] - poses[:, None, :3, 3], dim=-1)  # (V, n)
-        visible = fg & (distance <= torch.gather(hits, 1, flat) + tolerance)
-        rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))  # (V, n, 3)
-        weight = visible.to(rgb.dtype)[..., None]
-        count = weight.sum(0)  # (n, 1)
-        mean = (rgb * weight).sum(0) / count.clamp(min=1.0)
-        spread = (((rgb - mean) ** 2).sum(-1, keepdim=True) * weight).sum(0) / count.clamp(min=1.0)
-        bad = (count[:, 0] >= CONSISTENCY_MIN_VIEWS) & (spread[:, 0].sqrt() > threshold)
-        if not bool(bad.any()):
-            break
-        keep[idx[bad]] = False
-    return keep.view(occupied.shape)
-
-
-def hull_shell(occupied: torch.Tensor, voxels: int) -> torch.Tensor:
-    """(X, Y, Z) bool: the ``occupied`` (X, Y, Z) points within ``voxels`` grid steps (a cube's reach) of a point outside."""
-    if voxels <= 0:
-        return occupied
-    k = 2 * voxels + 1
-    empty = (~occupied).float()[None, None]
-    near_empty = torch.nn.functional.max_pool3d(torch.nn.functional.pad(empty, (voxels,) * 6, value=1.0), k, stride=1)
-    return occupied & (near_empty[0, 0] > 0)
-
-
 def carve(points: torch.Tensor, images: torch.Tensor, alphas: torch.Tensor | None, poses: torch.Tensor,
-          intrinsics: torch.Tensor, background: torch.Tensor, *, voxel: float = 0.0,
-          consistency: float = 0.0, size: tuple[int, int, int] | None = None,
-          shell: int = 0) -> CarveStart | Silhouettes:
+          intrinsics: torch.Tensor, background: torch.Tensor, *, voxel: float = 0.0) -> CarveStart | Silhouettes:
     """The carved start on (N, 3) ``points`` from training views, or the :class:`Silhouettes` saying why not.
 
     Args:
@@ -333,8 +226,6 @@ def carve(points: torch.Tensor, images: torch.Tensor, alphas: torch.Tensor | Non
         images: (V, H, W, 3) training images composited on ``background`` (3,).
         alphas: (V, H, W) their alpha, None for opaque images.
         poses: (V, 4, 4); intrinsics: (V, 4).
-        consistency: the photo-consistency threshold (:func:`photo_consistent`; 0: the visual hull alone).
-        size: the (X, Y, Z) grid ``points`` are the corners of (needed by photo-consistency; None: not applied).
     """
     sil = silhouettes(images, alphas)
     if sil.masks is None:
@@ -345,13 +236,5 @@ def carve(points: torch.Tensor, images: torch.Tensor, alphas: torch.Tensor | Non
     occupied, unknown = inside & (seen_fraction >= SEEN_FRACTION), inside & (seen_fraction < SEEN_FRACTION)
     if not bool(occupied.any()):
         return Silhouettes(None, "none", sil.background, f"{sil.reason}, but no grid point lies in every silhouette: not carved")
-    hull = occupied
-    if consistency > 0 and size is not None:  # judged on the hull of the masks as they are (the margin sees background)
-        tight = visual_hull(points, sil.masks, poses, intrinsics)[0] & hull
-        bounds = torch.stack([points.amin(0), points.amax(0)])
-        kept = photo_consistent(tight.view(size), bounds, sil.masks, images, poses, intrinsics, threshold=consistency).reshape(-1)
-        occupied = hull & ~(tight & ~kept)
-    if shell > 0 and size is not None:
-        occupied = hull_shell(occupied.view(size), shell).reshape(-1)
-    rgb = torch.where(hull[:, None], mean_colour(points, sil.masks, images, poses, intrinsics, background), background)
-    return CarveStart(occupied, unknown, rgb, float(occupied.float().mean()), sil, margin, hull & ~occupied)
+    rgb = torch.where(occupied[:, None], mean_colour(points, sil.masks, images, poses, intrinsics, background), background)
+    return CarveStart(occupied, unknown, rgb, float(occupied.float().mean()), sil, margin)

@@ -71,9 +71,7 @@ def carve_blocker(model, scene: Scene) -> str:
     return ""
 
 
-def carve_grid_start(model, scene: Scene, background: torch.Tensor, *, consistency: float = 0.0,
-                     hull_alpha: float = HULL_ALPHA, shell: int = 0,
-                     doubt_alpha: float = 0.01) -> StartReport:
+def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartReport:
     """Start ``model``'s coarse stage (a :class:`~nerfmeta.fields.voxel_grid.VoxelGrid`) from the visual hull of
     ``scene``'s training views; leave it untouched, with the reason, where the views cannot be carved."""
     t0 = time.perf_counter()
@@ -84,19 +82,15 @@ def carve_grid_start(model, scene: Scene, background: torch.Tensor, *, consisten
     device = model.bounds.device
     pts = grid_points(model.bounds, model.size).reshape(-1, 3)
     result = carve(pts, train.images.to(device), None if train.alphas is None else train.alphas.to(device),
-                   train.poses.to(device), train.intrinsics.to(device), background.to(device), voxel=model.voxel,
-                   consistency=consistency, size=tuple(model.size), shell=shell)
+                   train.poses.to(device), train.intrinsics.to(device), background.to(device), voxel=model.voxel)
     if not isinstance(result, CarveStart):
         return StartReport(False, "carve", result.reason, round(time.perf_counter() - t0, 4), {"source": result.source})
     step = model.config.stepsize * model.voxel
     empty = torch.where(result.unknown, sigma_for_alpha(model.config.coarse_alpha_init, step), sigma_for_alpha(EMPTY_ALPHA, step))
-    sigma = torch.where(result.occupied, sigma_for_alpha(hull_alpha, step), empty)
-    if result.doubtful is not None:
-        sigma = torch.where(result.doubtful, sigma_for_alpha(doubt_alpha, step), sigma)
+    sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), empty)
     model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
     figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
                "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px,
-               "unknown_fraction": round(float(result.unknown.float().mean()), 4),
-               "doubtful_fraction": round(float(result.doubtful.float().mean()), 4) if result.doubtful is not None else 0.0}
+               "unknown_fraction": round(float(result.unknown.float().mean()), 4)}
     reason = f"{result.silhouettes.reason}: the coarse grid starts from the visual hull ({100 * result.hull_fraction:.1f}% of it)"
     return StartReport(True, "carve", reason, round(time.perf_counter() - t0, 4), figures)
