@@ -266,16 +266,3 @@ def test_unknown_points_start_at_scratchs_alpha():
     levels = torch.tensor([HULL_ALPHA, model.config.coarse_alpha_init, EMPTY_ALPHA])
     nearest = ((alpha[:, None] - levels).abs() / levels).argmin(1)
     assert torch.allclose(alpha, levels[nearest], rtol=1e-3) and set(nearest.tolist()) == {0, 1, 2}
-
-
-def test_the_hull_keeps_every_point_within_several_voxels_of_the_object():
-    """Points outside the hull start empty and are never sampled again, so the hull must not cut into the object: every
-    point within 5 coarse voxels of the sphere stays in it (a 2.4-voxel margin cut the seed-13 table, BENCHMARKS.md)."""
-    poses, k, alphas = sphere_views()
-    images = composite(alphas, torch.ones(3) * 0.5, torch.ones(3))
-    pts = grid_points(torch.tensor([[-1.2] * 3, [1.2] * 3]), (33, 33, 33)).reshape(-1, 3)
-    voxel = 2.4 / 32
-    out = carve(pts, images, alphas, poses, k, torch.ones(3), voxel=voxel)
-    r = torch.linalg.vector_norm(pts, dim=-1)
-    assert bool(out.occupied[r < RADIUS + 5 * voxel].all())
-    assert not bool(out.occupied[r > 1.6].any())  # still a hull: the box's far corners are carved away
