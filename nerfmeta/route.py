@@ -57,8 +57,9 @@ ROUTES = ("category", "meta", "carve", "scratch")
 CARVE_ROUTE = False
 """Whether a scratch route on the voxel grid becomes the carved start (``--init carve``, :mod:`nerfmeta.priors`).
 Off: on held-out generated scenes it is far ahead early but not within 0.1 dB of scratch at every time: a concave
-object (an open lamp shade) ends below scratch, and the faster carved fit reaches the late fall of test PSNR sooner
-(BENCHMARKS.md, *Grid priors (#17)*, *Carved start: never behind*)."""
+object (an open lamp shade, seed 11) or one the hull's margin cuts into (a table on thin legs, seed 13) ends below
+scratch even at equal iterations, and the faster carved fit reaches the late fall of test PSNR sooner (BENCHMARKS.md,
+*Grid priors (#17)*, *Carved start: never behind*, *Carved start: concave objects and the early check*)."""
 COMPARE_DIR = "compare"
 DEFAULT_BACKBONE = "grid"
 """The backbone of a fit that names none: the voxel grid, the fastest scratch fit."""
