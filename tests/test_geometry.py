@@ -52,6 +52,23 @@ def test_exact_sdf_samples_lie_on_the_surface_with_radial_normals():
     assert np.allclose(s.normals, s.points / r[:, None], atol=1e-6)
 
 
+def test_a_twin_sampling_shares_the_mesh_and_equals_a_separate_one():
+    """A ground truth and its twin (the sampling floor) come from one marching-cubes mesh: each equals the
+    sampling made alone with its seed, and the two are different samplings."""
+    from nerfmeta.geometry.truth import sample_sdf_surfaces
+
+    def sdf(x):
+        return x.norm(dim=-1) - 0.6
+
+    box = np.array([[-0.7] * 3, [0.7] * 3])
+    gt, twin = sample_sdf_surfaces(sdf, box, 2000, resolution=32, seeds=(1, 2))
+    for pair, seed in ((gt, 1), (twin, 2)):
+        alone = sample_sdf_surface(sdf, box, 2000, resolution=32, seed=seed)
+        np.testing.assert_array_equal(pair.points, alone.points)
+        np.testing.assert_array_equal(pair.normals, alone.normals)
+    assert not np.allclose(gt.points, twin.points)
+
+
 def test_the_sampling_floor_is_what_an_exact_surface_scores_and_falls_as_one_over_sqrt_n():
     """Two samplings of one sphere are not at distance 0: about half their spacing, ~ sqrt(area / n)."""
     floors = {n: sampling_floor(sphere_points(n, 1.0, seed=1)[0], sphere_points(n, 1.0, seed=2)[0]) for n in (2000, 32000)}

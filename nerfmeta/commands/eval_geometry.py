@@ -36,13 +36,14 @@ def run(args: argparse.Namespace) -> int:
     from nerfmeta.geometry.concavity import concavity_figures
     from nerfmeta.geometry.load import load_run_model
     from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame, topology_summary
-    from nerfmeta.geometry.truth import ground_truth, scene_sdf_of
+    from nerfmeta.geometry.truth import ground_truths, scene_sdf_of
     from nerfmeta.paths import check_output_file, write_output_json
 
     config = build_config(GeometryConfig, given_values(args, GeometryConfig))
     json_out = check_output_file(args.json_out, option="--json-out", inputs=(args.run, args.gt)) if args.json_out else None
-    gt = ground_truth(args.gt, config.n_points, resolution=max(config.resolution, 128), seed=config.seed + 1)
-    twin = ground_truth(args.gt, config.n_points, resolution=max(config.resolution, 128), seed=config.seed + 2) if config.floor else None
+    seeds = (config.seed + 1, config.seed + 2) if config.floor else (config.seed + 1,)
+    gt, *rest = ground_truths(args.gt, config.n_points, resolution=max(config.resolution, 128), seeds=seeds)
+    twin = rest[0] if rest else None
     model, scene = load_run_model(args.run)
     mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
     doc = {**dataclasses.asdict(evaluate_mesh(mesh, gt, config, twin)), "ground_truth": gt.source, "run": args.run,

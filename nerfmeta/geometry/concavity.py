@@ -63,8 +63,7 @@ def concavity_figures(model: RadianceModel, scene: Any, true_sdf: Callable[[torc
     gen = torch.Generator().manual_seed(seed)
     points = box[0] + (box[1] - box[0]) * torch.rand(n_points, 3, generator=gen)
     in_hull, _ = visual_hull(points, scene.alphas[idx] > 0.5, scene.poses[idx].to(points), scene.intrinsics[idx].to(points), misses=0)
-    norm = scene.normalization
-    file_points = (points.double() - torch.as_tensor(norm.offset, dtype=torch.float64)) / float(norm.scale)  # as Mesh.transformed
+    file_points = scene.normalization.invert_points(points.double())
     with torch.no_grad():
         truth = true_sdf(file_points)
         surface = surface_function(model, scene.bounds)

@@ -14,7 +14,7 @@ from nerfmeta.fields.base import RadianceModel
 from nerfmeta.geometry.extract import extract_mesh
 from nerfmeta.geometry.mesh import Mesh, mesh_topology
 from nerfmeta.geometry.metrics import GeometryConfig, GeometryMetrics, compare_surfaces, sampling_floor
-from nerfmeta.geometry.truth import SurfaceSamples, sample_mesh_surface, sample_sdf_surface, scene_sdf_of
+from nerfmeta.geometry.truth import SurfaceSamples, sample_mesh_surface, sample_sdf_surfaces, scene_sdf_of
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +62,9 @@ def fit_geometry(model: RadianceModel, scene: Any, config: GeometryConfig = FIT_
     if found is None:
         return None
     try:
-        gt = sample_sdf_surface(*found, config.n_points, resolution=config.resolution, seed=config.seed)
-        twin = sample_sdf_surface(*found, config.n_points, resolution=config.resolution, seed=config.seed + 1) if config.floor else None
+        seeds = (config.seed, config.seed + 1) if config.floor else (config.seed,)
+        gt, *rest = sample_sdf_surfaces(*found, config.n_points, resolution=config.resolution, seeds=seeds)
+        twin = rest[0] if rest else None
         with torch.random.fork_rng(devices=[]):
             mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
         metrics = evaluate_mesh(mesh, gt, config, twin)

@@ -63,14 +63,24 @@ def project_to_zero_set(sdf: SdfFn, points: np.ndarray, h: float, steps: int = 2
 
 def sample_sdf_surface(sdf: SdfFn, box: np.ndarray, n: int, *, resolution: int = 128, seed: int = 0) -> SurfaceSamples:
     """``n`` oriented samples on the zero level set of an exact SDF inside ``box`` (2, 3) (see the module docstring)."""
+    return sample_sdf_surfaces(sdf, box, n, resolution=resolution, seeds=(seed,))[0]
+
+
+def sample_sdf_surfaces(sdf: SdfFn, box: np.ndarray, n: int, *, resolution: int = 128,
+                        seeds: tuple[int, ...] = (0,)) -> list[SurfaceSamples]:
+    """One independent :func:`sample_sdf_surface` per seed, all from one marching-cubes mesh of the SDF
+    (a ground truth and its twin for the sampling floor cost one mesh, not two)."""
     pad = 0.02 * (box[1] - box[0])
     grid_box = torch.as_tensor(np.stack([box[0] - pad, box[1] + pad]), dtype=torch.float64)
     values = grid_values(sdf, grid_box, resolution, chunk=1 << 18)
     mesh = marching_cubes(values, grid_box.numpy(), 0.0, inside_above=False)
-    points, _ = sample_surface(mesh, n, np.random.default_rng(seed))
     h = 1e-4 * float(np.linalg.norm(box[1] - box[0]))
-    points, normals = project_to_zero_set(sdf, points, h)
-    return SurfaceSamples(points, normals, "exact SDF")
+    out = []
+    for seed in seeds:
+        points, _ = sample_surface(mesh, n, np.random.default_rng(seed))
+        points, normals = project_to_zero_set(sdf, points, h)
+        out.append(SurfaceSamples(points, normals, "exact SDF"))
+    return out
 
 
 def sample_mesh_surface(mesh: Mesh, n: int, *, seed: int = 0) -> SurfaceSamples:
@@ -81,16 +91,22 @@ def sample_mesh_surface(mesh: Mesh, n: int, *, seed: int = 0) -> SurfaceSamples:
 
 def ground_truth(spec: str | os.PathLike, n: int, *, resolution: int = 128, seed: int = 0) -> SurfaceSamples:
     """Ground-truth samples from a generated scene folder (its exact SDF) or a PLY/OBJ mesh file."""
+    return ground_truths(spec, n, resolution=resolution, seeds=(seed,))[0]
+
+
+def ground_truths(spec: str | os.PathLike, n: int, *, resolution: int = 128, seeds: tuple[int, ...] = (0,)) -> list[SurfaceSamples]:
+    """One independent :func:`ground_truth` sampling per seed, the file read (or the SDF meshed) once."""
     from nerfmeta.errors import ConfigError
 
     path = Path(spec)
     if path.is_file():
-        out = sample_mesh_surface(read_mesh(path), n, seed=seed)
-        return SurfaceSamples(out.points, out.normals, f"mesh {path}")
+        mesh = read_mesh(path)
+        return [SurfaceSamples(out.points, out.normals, f"mesh {path}")
+                for out in (sample_mesh_surface(mesh, n, seed=seed) for seed in seeds)]
     found = scene_sdf_of(path) if path.is_dir() else None
     if found is None:
         raise ConfigError(f"--gt {spec}: neither a PLY/OBJ mesh nor a scene of a generated collection (no collection.json "
                           "above it lists it), so no ground-truth geometry")
     sdf, box = found
-    out = sample_sdf_surface(sdf, box, n, resolution=resolution, seed=seed)
-    return SurfaceSamples(out.points, out.normals, f"exact SDF of {path}")
+    return [SurfaceSamples(out.points, out.normals, f"exact SDF of {path}")
+            for out in sample_sdf_surfaces(sdf, box, n, resolution=resolution, seeds=seeds)]
