@@ -147,13 +147,14 @@ def test_the_ndc_near_plane_is_recorded_per_run_and_old_runs_keep_nerfs_factor(f
     """A run's NDC space comes from its own ``ndc_near_factor`` (default 0.9); a ``config.json`` written before
     the factor was recorded reloads with NeRF's 0.75, so its checkpoint stays in the space it was fitted in."""
     from nerfmeta.errors import ConfigError
-    from nerfmeta.fit.run import NDC_NEAR_FACTOR, run_scene
+    from nerfmeta.fit.run import run_scene
     from nerfmeta.io import to_jsonable
-    from nerfmeta.render.ndc import BD_FACTOR, ndc_space
+    from nerfmeta.render.ndc import BD_FACTOR, NEAR_FACTOR, ndc_space
 
     loaded = load_scene(forward_scene)
     new = run_scene(RunConfig(scene=str(forward_scene)))
-    assert new.ndc.near_factor == NDC_NEAR_FACTOR == 0.9
+    assert new.ndc.near_factor == NEAR_FACTOR == 0.9
+    assert fit_space(loaded).ndc.near_factor == NEAR_FACTOR  # the library default is the runs' default
     assert new.ndc.scene_near == pytest.approx(loaded.near)  # the render path's focus depth is the scene's near
     assert new.ndc.scale == pytest.approx(1.0 / (0.9 * loaded.near))
     old_json = {k: v for k, v in to_jsonable(RunConfig(scene=str(forward_scene))).items() if k != "ndc_near_factor"}

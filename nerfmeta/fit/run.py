@@ -46,7 +46,7 @@ from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_mo
 from nerfmeta.geometry.runs import fit_geometry
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
 from nerfmeta.fit.sampler import fit_space
-from nerfmeta.render.ndc import BD_FACTOR
+from nerfmeta.render.ndc import BD_FACTOR, NEAR_FACTOR
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
@@ -56,9 +56,6 @@ from nerfmeta.runfolder import run_folder, write_summary
 log = logging.getLogger(__name__)
 
 RENDERED_VIEWS = 4
-NDC_NEAR_FACTOR = 0.9
-"""Default NDC near plane of a forward-facing fit, as a fraction of the scene's near bound: 0.9 beat NeRF's
-0.75 on the generated forward scenes at equal steps (BENCHMARKS.md, forward-facing scenes)."""
 
 
 @dataclass(frozen=True)
@@ -83,7 +80,7 @@ class RunConfig:
     scene_type: str = "auto"
     """Kind of capture: auto (detected from the cameras and image borders), object, forward or unbounded
     (see :mod:`nerfmeta.data.scene_type`); the summary records the kind and why."""
-    ndc_near_factor: float = bounded(NDC_NEAR_FACTOR, low=0.0, high=1.0, low_open=True)
+    ndc_near_factor: float = bounded(NEAR_FACTOR, low=0.0, high=1.0, low_open=True)
     """Forward-facing scenes: the NDC near plane's distance as a fraction of the scene's near bound (NeRF: 0.75);
     see :mod:`nerfmeta.render.ndc`. Other scene types ignore it."""
     device: str = "cpu"

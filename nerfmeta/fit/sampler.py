@@ -13,7 +13,7 @@ import torch
 
 from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
-from nerfmeta.render.ndc import BD_FACTOR, NDCSpace, ndc_box, ndc_space, to_ndc
+from nerfmeta.render.ndc import NEAR_FACTOR, NDCSpace, ndc_box, ndc_space, to_ndc
 from nerfmeta.render.rays import camera_rays, image_rays
 
 NDC_DEPTH_SCALE = 0.5
@@ -23,7 +23,7 @@ more (362 x 362 x 128), and a ray marches fewer samples (82 instead of 118 per t
 forward scene at 160 x 120)."""
 
 
-def fit_space(scene: Scene, near_factor: float = BD_FACTOR) -> Scene:
+def fit_space(scene: Scene, near_factor: float = NEAR_FACTOR) -> Scene:
     """The scene as a fit sees it: a forward-facing scene in NDC (its ``ndc`` set, ``bounds`` the NDC box
     holding every pixel ray, ``near`` 0 and ``far`` the box's diagonal); any other scene unchanged.
 

@@ -37,6 +37,10 @@ BD_FACTOR = 0.75
 """NeRF's LLFF setting: the scene's near distance is scaled to ``1 / BD_FACTOR`` in front of the near plane
 (the near plane sits at 0.75 x the scene's near bound). Runs record their own factor
 (``RunConfig.ndc_near_factor``); runs saved before it was recorded used this one."""
+NEAR_FACTOR = 0.9
+"""The near plane a fit uses by default (``RunConfig.ndc_near_factor``, :func:`~nerfmeta.fit.sampler.fit_space`), as a
+fraction of the scene's near bound: 0.9 beat NeRF's 0.75 on the generated forward scenes at equal steps (BENCHMARKS.md,
+forward-facing scenes). :func:`ndc_space` itself keeps NeRF's :data:`BD_FACTOR` as its default."""
 
 
 def ndc_rays(
