@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from nerfmeta.config import build_config, parse_overrides  # noqa: E402
+from nerfmeta.fields.grid_ops import interp_cf  # noqa: E402
 from nerfmeta.fields.registry import build_model  # noqa: E402
 from nerfmeta.fields.sdf import SdfConfig  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
@@ -50,12 +51,6 @@ def level_set_distance(values: np.ndarray, level: float, inside_above: bool, cel
                                     ndimage.distance_transform_edt(~inside, sampling=cell)), dtype=torch.float32)
 
 
-def lattice_lookup(lattice: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """Trilinear values (N,) of an (R, R, R) lattice indexed [x, y, z] at unit-cube points ``u`` (N, 3)."""
-    grid = (2.0 * u - 1.0).flip(-1)[None, :, None, None, :]  # grid_sample reads (x, y, z) as (W, H, D) = lattice (z, y, x)
-    return torch.nn.functional.grid_sample(lattice[None, None], grid, align_corners=True)[0, 0, :, 0, 0]
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("density_run", help="a fit run of a density backbone (e.g. --backbone grid) on SCENE")
@@ -73,14 +68,15 @@ def main() -> int:
     surface = surface_function(density, box)
     lattice = level_set_distance(grid_values(surface.values, box, args.resolution), surface.level, surface.inside_above,
                                  (box[1] - box[0]).numpy() / (args.resolution - 1))
-    offset, scale = torch.as_tensor(scene.normalization.offset, dtype=torch.float64), float(scene.normalization.scale)
+    norm = scene.normalization
     model = build_model("sdf", build_config(SdfConfig, {**RECIPE, **parse_overrides(args.set, SdfConfig)}), box, seed=0)
     opt = torch.optim.Adam([p for n, p in model.named_parameters() if n != "variance"], lr=1e-3)
     gen = torch.Generator().manual_seed(0)
     for _ in range(args.reg_steps):
         u = torch.rand(4096, 3, generator=gen)
         points = box[0] + (box[1] - box[0]) * u
-        target = (exact((points.double() - offset) / scale) * scale).float() if args.truth else lattice_lookup(lattice, u)
+        target = (exact(norm.invert_points(points.double())) * norm.scale).float() if args.truth else \
+            interp_cf(lattice[None], points, box)[:, 0]
         loss = (model.sdf_world(points) - target).abs().mean()
         opt.zero_grad()
         loss.backward()
