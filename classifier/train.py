@@ -37,7 +37,8 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
 from nerfmeta.runfolder import check_target, run_folder
 
-from classifier.config import CALIBRATION_NEEDS, DEFAULT_SCORE, SCALE_PRIOR_GRID, SCORES, CalibrationNeeds, TrainConfig
+from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFAULT_SCORE, SCALE_PRIOR_GRID, SCORES,
+                               CalibrationNeeds, TrainConfig)
 from classifier.data import ViewSet, augment_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
@@ -367,6 +368,7 @@ def calibrate_inputs(
     }
     held = score_table(data.holdout_val, stats) if data.holdout_val else None
     metrics["holdout_val_scenes"] = len(data.holdout_val)
+    metrics["fewest_train_scenes"] = fewest_scenes_per_class(data.train_labels, data.train_scene_index, n_classes)
     for name in SCORES:
         flagged = known[name] < thresholds[name]
         entry = {
@@ -430,23 +432,40 @@ def calibration_warnings(
     return lines
 
 
+def fewest_scenes_per_class(labels: torch.Tensor, scene_index: torch.Tensor, n_classes: int) -> int:
+    """The fewest distinct scenes any of the ``n_classes`` classes has among (n_views,) views labelled ``labels``
+    and numbered by scene ``scene_index`` (0 for a class without views)."""
+    return min(int(scene_index[labels == c].unique().numel()) for c in range(n_classes))
+
+
+def fallback_score(metrics: dict[str, Any]) -> str:
+    """The score ``auto`` falls back to: ``class_mahalanobis`` when every known category has
+    :data:`CLASS_SCORE_TRAIN_SCENES` training scenes (``metrics["fewest_train_scenes"]``), else :data:`DEFAULT_SCORE`."""
+    return "class_mahalanobis" if metrics.get("fewest_train_scenes", 0) >= CLASS_SCORE_TRAIN_SCENES else DEFAULT_SCORE
+
+
 def select_score(requested: str, metrics: dict[str, Any], min_holdout_scenes: int = CALIBRATION_NEEDS.holdout_val_scenes) -> tuple[str, str]:
     """The score the decision uses, and why.
 
     ``auto`` takes the highest AUROC on the held-out categories' validation scenes (ties go to the
-    earlier of :data:`DEFAULT_SCORE`, then :data:`SCORES` order); with fewer than
-    ``min_holdout_scenes`` of them (an AUROC on a handful of scenes picks noise) it takes
-    :data:`DEFAULT_SCORE`. Any other value is used as given.
+    fallback (:func:`fallback_score`), then :data:`DEFAULT_SCORE`, then :data:`SCORES` order); with fewer than
+    ``min_holdout_scenes`` of them (an AUROC on a handful of scenes picks noise) it takes the fallback.
+    Any other value is used as given.
     """
     if requested != "auto":
         return requested, "given"
     aurocs = {name: entry.get("holdout_val_auroc") for name, entry in metrics["scores"].items()}
     held = metrics.get("holdout_val_scenes", 0)
+    fallback = fallback_score(metrics)
+    why = (f"{metrics.get('fewest_train_scenes', 0)} training scenes in the smallest category"
+           f"{'' if fallback == DEFAULT_SCORE else f' (>= {CLASS_SCORE_TRAIN_SCENES})'}")
     if any(v is None for v in aurocs.values()) or held < max(1, min_holdout_scenes):
-        return DEFAULT_SCORE, (f"default ({held} held-out validation scenes to compare the scores on; "
-                               f"auto compares them from {max(1, min_holdout_scenes)})")
-    order = [s for s in dict.fromkeys((DEFAULT_SCORE, *SCORES)) if s in aurocs]
+        return fallback, (f"fallback for {why} ({held} held-out validation scenes to compare the scores on; "
+                          f"auto compares them from {max(1, min_holdout_scenes)})")
+    order = [s for s in dict.fromkeys((fallback, DEFAULT_SCORE, *SCORES)) if s in aurocs]
     best = max(order, key=lambda s: (aurocs[s], -order.index(s)))
+    if best == fallback and sum(aurocs[s] == aurocs[best] for s in order) > 1:
+        return best, f"best AUROC on the held-out categories' validation scenes, tied: the fallback for {why}"
     return best, "best AUROC on the held-out categories' validation scenes"
 
 

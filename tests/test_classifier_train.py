@@ -10,12 +10,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from classifier.config import DEFAULT_SCORE, NO_AUGMENT, SCORES, TrainConfig
+from classifier.config import CLASS_SCORE_TRAIN_SCENES, DEFAULT_SCORE, NO_AUGMENT, SCORES, TrainConfig
 from classifier.data import composite, load_view_set, normalize
 from classifier.inputs import read_scene_views
 from classifier.model import build_model
 from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, WEIGHTS_FILE, classify_views, load_classifier
-from classifier.train import fit_network, lr_factor, plan_splits, select_score, train_classifier
+from classifier.train import fewest_scenes_per_class, fit_network, lr_factor, plan_splits, select_score, train_classifier
 from nerfmeta.cli import main
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.errors import ConfigError
@@ -64,6 +64,26 @@ def test_auto_score_picks_the_best_validation_auroc_else_the_default():
     without = {"scores": {k: {} for k in SCORES}}
     assert select_score("auto", without) == (DEFAULT_SCORE, select_score("auto", without)[1])
     assert select_score("msp", with_holdout) == ("msp", "given")
+
+
+def test_auto_score_falls_back_to_the_class_score_only_with_enough_training_scenes_per_category():
+    tie = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 1.0} for k in SCORES}}
+    few_held = {"holdout_val_scenes": 2, "scores": {k: {"holdout_val_auroc": 1.0} for k in SCORES}}
+    enough, short = CLASS_SCORE_TRAIN_SCENES, CLASS_SCORE_TRAIN_SCENES - 1
+    score, why = select_score("auto", {**tie, "fewest_train_scenes": enough})
+    assert score == "class_mahalanobis" and "tied" in why
+    assert select_score("auto", {**few_held, "fewest_train_scenes": enough})[0] == "class_mahalanobis"
+    assert select_score("auto", {**tie, "fewest_train_scenes": short})[0] == DEFAULT_SCORE
+    assert select_score("auto", {**few_held, "fewest_train_scenes": short})[0] == DEFAULT_SCORE
+    better = {**tie, "fewest_train_scenes": enough, "scores": {**tie["scores"], "class_mahalanobis": {"holdout_val_auroc": 0.9}}}
+    assert select_score("auto", better)[0] == DEFAULT_SCORE  # a measured difference still wins over the fallback
+
+
+def test_fewest_scenes_per_class_exact_small_case():
+    labels = torch.tensor([0, 0, 0, 1, 1, 1, 1])
+    scenes = torch.tensor([0, 0, 1, 2, 3, 4, 4])  # class 0: scenes 0, 1; class 1: scenes 2, 3, 4
+    assert fewest_scenes_per_class(labels, scenes, 2) == 2
+    assert fewest_scenes_per_class(labels, scenes, 3) == 0  # a class without views
 
 
 def _loss(model, views, config) -> float:
