@@ -21,9 +21,6 @@ above, and 0.1 was the furthest ahead of the three after 50 steps (BENCHMARKS.md
 EMPTY_ALPHA = 1e-6
 """Alpha of one coarse marching step outside the hull (scratch's 1e-4 instead lets faint floaters into the fine
 stage's occupancy cache: 82 % of the fine voxels against 32 % on the design lamp, and 0.48 dB lower at 1000 steps)."""
-START_CHECK_RAYS = 4096
-"""Training rays the carved start is rendered on to fit its colour gain (:func:`colour_gain`) and to check it against the
-blank scene scratch starts from (two renders of the coarse grid: a few hundredths of a second at 64 px)."""
 CARVE_COARSE_ITERS = 100
 """Coarse steps a carved start keeps: scratch's 100, so only the start differs (on a design scene, 20 steps were 1.3 dB
 ahead at 2 s but ended 0.7 dB below scratch at 1000 iterations; 100 ended 0.15 dB below, within run-to-run noise)."""
@@ -55,38 +52,6 @@ class StartReport:
 def sigma_for_alpha(alpha: float, step: float) -> float:
     """Density per world unit giving ``alpha`` over a marching step of ``step`` world units."""
     return -math.log1p(-alpha) / step
-
-
-def colour_gain(rendered: torch.Tensor, background: torch.Tensor, target: torch.Tensor) -> float:
-    """The gain ``g`` in [0, 1] about the background that best fits ``target`` with a start's colours.
-
-    Compositing weights and the final transmittance sum to one, so blending every colour of the start towards the
-    background, ``c -> bg + g (c - bg)``, moves each render to ``bg + g (rendered - bg)`` (exactly for colours blended
-    where they are stored and interpolated; the grid blends logits, so the caller checks the result). ``g = 0`` renders
-    the blank scene; the least-squares ``g`` is ``<rendered - bg, target - bg> / |rendered - bg|^2``, clipped to [0, 1].
-
-    Args:
-        rendered: (n, 3) the start's render of training pixels (``g = 1``).
-        background: (3,) the background colour.
-        target: (n, 3) those pixels' colours.
-    """
-    lift = (rendered - background).double()
-    den = float((lift * lift).sum())
-    if den <= 0.0:
-        return 0.0
-    return min(1.0, max(0.0, float((lift * (target - background).double()).sum()) / den))
-
-
-def _check_rays(scene: Scene, device: torch.device):
-    from nerfmeta.fit.sampler import RaySampler
-
-    return RaySampler(scene, "train", device).sample(START_CHECK_RAYS, torch.Generator().manual_seed(0))
-
-
-def _mse(model, rays, background: torch.Tensor) -> tuple[torch.Tensor, float]:
-    with torch.no_grad():
-        rgb = model.render(rays, background=background).rgb
-    return rgb, float(((rgb - rays.target) ** 2).mean())
 
 
 def carve_blocker(model, scene: Scene) -> str:
@@ -123,30 +88,9 @@ def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartRepo
     step = model.config.stepsize * model.voxel
     empty = torch.where(result.unknown, sigma_for_alpha(model.config.coarse_alpha_init, step), sigma_for_alpha(EMPTY_ALPHA, step))
     sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), empty)
-    grid_rgb = lambda gain: (background + gain * (result.rgb - background)).t().reshape(3, *model.size)  # noqa: E731
-    model.load_coarse_start(sigma.view(model.size), grid_rgb(1.0))
-    # The start must not render the training views worse than the blank scene scratch starts from: the hull's mean
-    # colours ignore occlusion, and on a concave or thin object they can (BENCHMARKS.md #17). Where they do, its
-    # colours are blended towards the background by the least-squares gain, and to the background itself if that
-    # still loses. A start that already beats blank keeps its colours: blending every start by its gain (0.57-0.95 on
-    # such scenes) left a held-out table 2.3 dB below scratch after 1000 steps.
-    rays = _check_rays(scene, device)
-    blank_mse = float(((background - rays.target) ** 2).mean())
-    rendered, start_mse = _mse(model, rays, background)
-    gain = 1.0
-    if start_mse > blank_mse:
-        gain = colour_gain(rendered, background, rays.target)
-        model.load_coarse_start(sigma.view(model.size), grid_rgb(gain))
-        start_mse = _mse(model, rays, background)[1]
-    if start_mse > blank_mse:
-        gain = 0.0
-        model.load_coarse_start(sigma.view(model.size), grid_rgb(gain))
-        start_mse = _mse(model, rays, background)[1]
+    model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
     figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
                "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px,
-               "unknown_fraction": round(float(result.unknown.float().mean()), 4), "colour_gain": round(gain, 4),
-               "start_train_mse": round(start_mse, 6), "blank_train_mse": round(blank_mse, 6)}
+               "unknown_fraction": round(float(result.unknown.float().mean()), 4)}
     reason = f"{result.silhouettes.reason}: the coarse grid starts from the visual hull ({100 * result.hull_fraction:.1f}% of it)"
-    if gain < 1.0:
-        reason += f", its colours blended {gain:.2f} of the way from the background (the training views' best fit)"
     return StartReport(True, "carve", reason, round(time.perf_counter() - t0, 4), figures)
