@@ -100,25 +100,22 @@ def time_to_reach(xs: list[float], ys: list[float], target: float) -> float | No
     return None
 
 
+def worst_gap(xs: list[float], ys: list[float], base_xs: list[float], base_ys: list[float]) -> float:
+    """Largest ``base - curve`` (dB) at the curve's points ``xs`` within the base's range, the base interpolated on the
+    same axis (>= 0 means behind; -inf when no point falls in the range)."""
+    gaps = [b - y for x, y in zip(xs, ys) if (b := interpolate(base_xs, base_ys, x)) is not None]
+    return max(gaps, default=-math.inf)
+
+
 def worst_deficit(curve: Curve, base: Curve) -> float:
-    """Largest ``base - curve`` (dB) at ``curve``'s evaluation times within ``base``'s range (>= 0 means behind)."""
-    worst = -math.inf
-    for t, p in zip(curve.times, curve.psnrs):
-        b = base.at(t)
-        if b is not None:
-            worst = max(worst, b - p)
-    return worst
+    """:func:`worst_gap` on the wall-clock axis: at ``curve``'s evaluation times."""
+    return worst_gap(curve.times, curve.psnrs, base.times, base.psnrs)
 
 
 def worst_deficit_by_iteration(curve: Curve, base: Curve) -> float:
-    """Largest ``base - curve`` (dB) at ``curve``'s evaluations, ``base`` interpolated at the same *iteration*: the
-    deficit with the machine's speed (and each arm's own speed per iteration) taken out."""
-    worst = -math.inf
-    for it, p in zip(curve.iters, curve.psnrs):
-        b = interpolate(base.iters, base.psnrs, it)
-        if b is not None:
-            worst = max(worst, b - p)
-    return worst
+    """:func:`worst_gap` at the same *iteration*: the deficit with the machine's speed (and each arm's own speed per
+    iteration) taken out."""
+    return worst_gap(curve.iters, curve.psnrs, base.iters, base.psnrs)
 
 
 def best_so_far(curve: Curve) -> Curve:
