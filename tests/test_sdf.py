@@ -155,6 +155,39 @@ def test_the_colour_network_can_see_an_encoded_position():
     assert model.color[0].weight.grad[:, 3:21].abs().sum() > 0
 
 
+def test_a_colour_grid_stores_texture_apart_from_the_sdf():
+    """``color_grid=S``: an (color_grid_dim, S, S, S) grid over the box frame feeds the colour network its trilinear
+    features, learns at its own rate, and leaves the SDF network's inputs and the state of ``color_grid=0`` unchanged."""
+    plain = build_model("sdf", SdfConfig(**{**TINY.__dict__, "view_dependent": False}), BOX, seed=0)
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "view_dependent": False, "color_grid": 5, "color_grid_dim": 3, "color_grid_lr": 0.2}), BOX, seed=0)
+    assert "color_grid" not in dict(plain.named_parameters())
+    assert tuple(model.color_grid.shape) == (3, 5, 5, 5)
+    assert model.color[0].in_features - plain.color[0].in_features == 3
+    groups = {g.name: g for g in model.param_groups()}
+    assert groups["color_grid"].param_names == ("color_grid",) and groups["color_grid"].lr == 0.2
+    assert "color_grid" not in groups["sdf"].param_names
+    check_partition(model)
+    batch = rays(alpha=True)
+    out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+    total_loss(out.losses).backward()
+    assert model.color_grid.grad.abs().sum() > 0  # zero-initialised, yet it learns from the first step
+    # Exact small case: at a grid corner the features are that corner's values; the SDF does not see the grid.
+    with torch.no_grad():
+        model.color_grid.normal_()
+        corner = torch.tensor([[0.5, -1.0, 0.0]])  # box-frame corner (3, 0, 2) of a 5-corner grid over [-1, 1]
+        _, emb = model.get_density(corner)
+        h = model.color_grid[:, 3, 0, 2]
+        assert torch.equal(emb.sdf, plain.get_density(corner)[1].sdf)
+        first = model.color[0](torch.cat([corner, F.normalize(emb.grad, dim=-1), h[None], emb.feature], -1))
+        hidden = F.relu(first)
+        for layer in model.color[1:-1]:
+            hidden = F.relu(layer(hidden))
+        torch.testing.assert_close(model.get_outputs(emb, None, torch.zeros(1, 3), torch.zeros(1, dtype=torch.long)),
+                                   torch.sigmoid(model.color[-1](hidden)))
+    with pytest.raises(ConfigError, match="color_grid"):
+        SdfConfig(color_grid=1)
+
+
 def test_no_mask_term_without_alpha_and_eikonal_weight_applies():
     model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.0}), BOX, seed=0)
     batch = rays()

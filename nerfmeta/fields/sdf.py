@@ -42,12 +42,15 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent, photometric_mse
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.encodings import GRID_ENCODINGS, EncodingChoice, build_encoding, encoding_config
+from nerfmeta.fields.grid_ops import interp_gather
 from nerfmeta.render.estimators import OccupancyGrid
 from nerfmeta.render.volume import render_packed
 
 GRADIENTS = ("auto", "analytic", "numerical")
 TETRAHEDRON = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
 """Directions of the 4-point numerical gradient (NeuS2's tetrahedron)."""
+UNIT_BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+"""The box frame's cube, which the colour grid covers."""
 
 
 def annealed_cos(true_cos: torch.Tensor, ratio: float) -> torch.Tensor:
@@ -102,6 +105,12 @@ class SdfConfig(EncodingChoice):
     """Octaves of the positional encoding of the view direction (NeuS: 4)."""
     color_pos_freqs: int = 0
     """Octaves of a positional encoding of the position fed to the colour network beside ``x`` (0: ``x`` only, as NeuS), so texture need not bend the SDF's features."""
+    color_grid: int = 0
+    """Corners per axis of a dense feature grid over the box whose trilinear features feed the colour network (0: none, as NeuS), so a texture is stored in the grid and need not bend the SDF network's features."""
+    color_grid_dim: int = 8
+    """Features per corner of the colour grid."""
+    color_grid_lr: float = 0.05
+    """Adam learning rate of the colour grid."""
     view_dependent: bool = True
     """Feed the view direction to the colour network; False: a diffuse colour, which cannot fake a concavity's parallax (no shape-radiance ambiguity)."""
     depth: int = 4
@@ -147,7 +156,9 @@ class SdfConfig(EncodingChoice):
 
     def __post_init__(self) -> None:
         checks = (
-            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("color_pos_freqs", self.color_pos_freqs >= 0), ("depth", self.depth >= 1),
+            ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("color_pos_freqs", self.color_pos_freqs >= 0),
+            ("color_grid", self.color_grid == 0 or self.color_grid >= 2), ("color_grid_dim", self.color_grid_dim >= 1),
+            ("color_grid_lr", 0.0 < self.color_grid_lr < math.inf), ("depth", self.depth >= 1),
             ("width", self.width >= 3), ("feature_dim", self.feature_dim >= 0), ("color_depth", self.color_depth >= 1),
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
@@ -219,7 +230,10 @@ class SdfField(RadianceModel):
         self._geometric_init(in_dim)
         self.variance = nn.Parameter(torch.tensor(float(config.init_variance)))
         dir_dim = encoding_dim(3, config.dir_freqs) if config.view_dependent else 0
-        cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
+        grid_dim = config.color_grid_dim if config.color_grid else 0
+        if config.color_grid:
+            self.color_grid = nn.Parameter(torch.zeros((grid_dim,) + (config.color_grid,) * 3, device=bounds.device))
+        cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + grid_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
         self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
         self.occupancy = OccupancyGrid(self._box())
         self.cos_anneal_ratio = 1.0
@@ -323,13 +337,16 @@ class SdfField(RadianceModel):
 
     def get_outputs(self, embedding: SdfSamples, sel: torch.Tensor | None, directions: torch.Tensor,
                     ray_idx: torch.Tensor) -> torch.Tensor:
-        """Colour (K, 3) from ``[encoded x, normal, encoded view direction, feature]`` of the points ``sel`` (no direction
-        unless ``view_dependent``; ``x`` itself when ``color_pos_freqs`` is 0)."""
+        """Colour (K, 3) from ``[encoded x, normal, encoded view direction, colour-grid features, feature]`` of the points
+        ``sel`` (no direction unless ``view_dependent``; ``x`` itself when ``color_pos_freqs`` is 0; grid features when
+        ``color_grid`` is on)."""
         ev = embedding
         x, grad, feature = (ev.x, ev.grad, ev.feature) if sel is None else (ev.x[sel], ev.grad[sel], ev.feature[sel])
         parts = [positional_encoding(x, self.config.color_pos_freqs), F.normalize(grad, dim=-1)]
         if self.config.view_dependent:
             parts.append(positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs))
+        if self.config.color_grid:
+            parts.append(interp_gather(self.color_grid, x.detach(), UNIT_BOX.to(x)))
         h = torch.cat(parts + [feature], dim=-1)
         for layer in self.color[:-1]:
             h = F.relu(layer(h))
@@ -415,12 +432,15 @@ class SdfField(RadianceModel):
             return Layer(name, tuple(f"{name}.{p}" for p, _ in self.get_submodule(name).named_parameters()))
 
         first = [of("encoder")] if any(True for _ in self.encoder.parameters()) else []
+        grid = [Layer("color_grid", ("color_grid",))] if self.config.color_grid else []
         return (first + [of(f"sdf.{i}") for i in range(len(self.sdf))] + [Layer("variance", ("variance",))]
-                + [of(f"color.{i}") for i in range(len(self.color))])
+                + grid + [of(f"color.{i}") for i in range(len(self.color))])
 
     def param_groups(self) -> list[ParamGroup]:
         names = tuple(n for n, _ in self.named_parameters())
         enc = tuple(n for n in names if n.startswith("encoder."))
-        groups = [ParamGroup("sdf", tuple(n for n in names if n not in enc and n != "variance"), self.config.lr),
+        groups = [ParamGroup("sdf", tuple(n for n in names if n not in enc and n not in ("variance", "color_grid")), self.config.lr),
                   ParamGroup("variance", ("variance",), self.config.variance_lr)]
+        if self.config.color_grid:
+            groups.append(ParamGroup("color_grid", ("color_grid",), self.config.color_grid_lr))
         return groups + [ParamGroup("encoding", enc, self.config.encoding_lr)] if enc else groups
