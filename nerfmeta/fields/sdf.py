@@ -2,7 +2,8 @@
 
 The field (IDR, Yariv et al. NeurIPS 2020; NeuS, Wang et al. NeurIPS 2021): an MLP with softplus
 (beta 100) activations maps an encoded point to its signed distance and a feature vector; a colour
-MLP maps ``[x, normal, encoded view direction, feature]`` to RGB. Geometric initialisation (Atzmon
+MLP maps ``[x, normal, encoded view direction, feature]`` to RGB (optionally also the trilinear features of a
+dense colour grid, ``color_grid``, so a texture need not bend the SDF network's features). Geometric initialisation (Atzmon
 and Lipman's SAL, as IDR) makes the network start as a sphere of radius ``init_radius``.
 
 Frame: points are mapped *isotropically* into the box's frame, ``x = (p - centre) / h`` with ``h``
