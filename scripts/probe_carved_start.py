@@ -55,6 +55,14 @@ def level_set_distance(values: np.ndarray, level: float, inside_above: bool, cel
                                     ndimage.distance_transform_edt(~inside, sampling=cell)), dtype=torch.float32)
 
 
+def level_set_target(density, box: torch.Tensor, resolution: int):
+    """The signed distance (world units) of a density run's surface, as a function of (N, 3) box points."""
+    surface = surface_function(density, box)
+    lattice = level_set_distance(grid_values(surface.values, box, resolution), surface.level, surface.inside_above,
+                                 (box[1] - box[0]).numpy() / (resolution - 1))
+    return lambda points: interp_cf(lattice[None], points, box)[:, 0]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("density_run", help="a fit run of a density backbone (e.g. --backbone grid) on SCENE")
@@ -71,60 +79,58 @@ def main() -> int:
     density, scene = load_run_model(args.density_run)
     exact, _ = scene_sdf_of(args.scene)
     box = scene.bounds.float()
-    surface = surface_function(density, box)
-    lattice = level_set_distance(grid_values(surface.values, box, args.resolution), surface.level, surface.inside_above,
-                                 (box[1] - box[0]).numpy() / (args.resolution - 1))
     norm = scene.normalization
-
-    def target_sdf(points: torch.Tensor) -> torch.Tensor:
-        if args.truth:
-            return (exact(norm.invert_points(points.double())) * norm.scale).float()
-        return interp_cf(lattice[None], points, box)[:, 0]
 
     def truth(points: torch.Tensor) -> torch.Tensor:
         return (exact(norm.invert_points(points.double())) * norm.scale).float()
+
+    target_sdf = truth if args.truth else level_set_target(density, box, args.resolution)
+
+    def in_box(n: int, gen: torch.Generator) -> torch.Tensor:
+        return box[0] + (box[1] - box[0]) * torch.rand(n, 3, generator=gen)
 
     model = build_model("sdf", build_config(SdfConfig, {**RECIPE, **parse_overrides(args.set, SdfConfig)}), box, seed=0)
     geometry = [p for n, p in model.named_parameters() if n.startswith(("sdf.", "encoder."))]
     opt = torch.optim.Adam(geometry, lr=1e-3)
     gen = torch.Generator().manual_seed(0)
-    pool = box[0] + (box[1] - box[0]) * torch.rand(400_000, 3, generator=gen)
+    pool = in_box(400_000, gen)
     near = pool[target_sdf(pool).abs() < 0.03]
-    probe = box[0] + (box[1] - box[0]) * torch.rand(400_000, 3, generator=torch.Generator().manual_seed(5))
-    probe_truth = truth(probe)
+    probe = in_box(400_000, torch.Generator().manual_seed(5))
+    solid = probe[truth(probe) < -0.004]
     for _ in range(args.reg_steps):
-        points = torch.cat([box[0] + (box[1] - box[0]) * torch.rand(2048, 3, generator=gen),
+        points = torch.cat([in_box(2048, gen),
                             near[torch.randint(len(near), (2048,), generator=gen)] + 0.01 * torch.randn(2048, 3, generator=gen)])
         loss = (model.sdf_world(points) - target_sdf(points)).abs().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
+    reference = ground_truth(args.scene, 100_000, resolution=128, seed=1)
 
     def report(stage: str, psnr: float | None = None, **extra) -> None:
         with torch.no_grad():
-            solid = probe_truth < -0.004
-            held = float((model.sdf_world(probe[solid]) < 0).float().mean())
+            held = float((model.sdf_world(solid) < 0).float().mean())
         mesh = mesh_in_file_frame(model, scene, 128, colors=False)
-        metrics = evaluate_mesh(mesh, ground_truth(args.scene, 100_000, resolution=128, seed=1),
-                                GeometryConfig(n_points=100_000, resolution=128, floor=False))
+        metrics = evaluate_mesh(mesh, reference, GeometryConfig(n_points=100_000, resolution=128, floor=False))
         print(json.dumps({"stage": stage, **extra, "test_psnr": psnr, "solid_held": round(held, 3),
                           "chamfer_pct_diagonal": round(metrics.chamfer_pct_diagonal, 3), "s": round(float(model.inv_s()), 1),
                           **dataclasses.asdict(concavity_figures(model, scene, exact))}), flush=True)
+
+    def run_fit(iters: int) -> float | None:
+        result = fit(model, scene, FitConfig(iters=iters, batch_rays=512, eval_every=0, eval_views=2, checkpoint_every=0,
+                                             final_lpips=False), background=torch.ones(3))
+        return result.final.psnr if result.final else None
 
     report("regressed", l1=round(loss.item(), 4))
     frozen = geometry + [model.variance]
     if args.colour_first:
         for p in frozen:
             p.requires_grad_(False)
-        result = fit(model, scene, FitConfig(iters=args.colour_first, batch_rays=512, eval_every=0, eval_views=2,
-                                             checkpoint_every=0, final_lpips=False), background=torch.ones(3))
-        report("colour-first", result.final.psnr if result.final else None, iters=args.colour_first)
+        report("colour-first", run_fit(args.colour_first), iters=args.colour_first)
         for p in frozen:
             p.requires_grad_(True)
-    result = fit(model, scene, FitConfig(iters=args.iters, batch_rays=512, eval_every=0, eval_views=2, checkpoint_every=0,
-                                         final_lpips=False), background=torch.ones(3))
-    report("fitted", result.final.psnr if result.final else None, iters=args.iters)
+    report("fitted", run_fit(args.iters), iters=args.iters)
     return 0
+
 
 if __name__ == "__main__":
     raise SystemExit(main())
