@@ -69,7 +69,7 @@ def main() -> int:
     ap.add_argument("scene", help="the generated scene (its exact SDF scores the result)")
     ap.add_argument("--iters", type=int, default=500)
     ap.add_argument("--reg-steps", type=int, default=2400, help="regression steps (800 leave the mug's 1.3-pixel wall "
-                    "with holes, solid_held 0.71; 2400 hold it, 0.99)")
+                    "with holes, solid_held 0.64; 2400 hold it, 0.99)")
     ap.add_argument("--colour-first", type=int, default=0, metavar="N", help="steps fitting only the colour before the joint fit")
     ap.add_argument("--resolution", type=int, default=96)
     ap.add_argument("--truth", action="store_true", help="regress to the exact SDF instead of the density's level set")
