@@ -65,3 +65,43 @@ def test_two_processes_learn_the_same_parameters_as_one(tmp_path: Path):
     start = build_meta_model(saved_config(one), torch.device("cpu")).state_dict()
     moved = max(float((a[name] - start[name]).abs().max()) for name in a)
     assert moved > 1e3 * worst * max(float(v.abs().max()) for v in a.values())
+
+
+WORKER = """
+import os, sys
+import torch
+from pretrain.meta_dist import distributed_from_env
+
+def threads():
+    names = []
+    for task in os.listdir("/proc/self/task"):
+        try:
+            names.append(open(f"/proc/self/task/{task}/comm").read().strip())
+        except OSError:
+            pass
+    return names
+
+with distributed_from_env("cpu") as dist:
+    torch.optim.Adam([torch.nn.Parameter(torch.ones(2))])  # the first optimizer: imports torch._dynamo
+    dist.all_reduce_sum_(torch.ones(3))
+left = [name for name in threads() if "gloo" in name]
+print(f"rank {dist.rank}: gloo threads left {left}")
+sys.exit(1 if left else 0)
+"""
+
+
+@pytest.mark.slow
+def test_the_process_group_is_gone_when_the_context_exits(tmp_path: Path):
+    """No gloo thread outlives the context: one left for interpreter shutdown now and then aborts a rank at exit."""
+    if not torch.distributed.is_available() or not Path("/proc/self/task").is_dir():
+        pytest.skip("needs torch.distributed and Linux's /proc")
+    script = tmp_path / "worker.py"
+    script.write_text(WORKER)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    env.pop("RANK", None)
+    env.pop("WORLD_SIZE", None)
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(script)], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]
+    assert done.stdout.count("gloo threads left []") == 2, done.stdout
