@@ -10,7 +10,7 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition, total_loss
 from nerfmeta.fields.registry import build_model
-from nerfmeta.fields.sdf import SdfConfig, SdfField, annealed_cos, neus_tau
+from nerfmeta.fields.sdf import SdfConfig, SdfField, annealed_cos, neus_tau, ramped_weight
 
 TINY = SdfConfig(depth=2, width=32, feature_dim=4, color_depth=1, color_width=8, n_samples=16, pos_freqs=2, dir_freqs=1,
                  occupancy=False, hash_levels=3, hash_log2_size=8, hash_base_res=2, hash_finest_res=16, nffb_width=4,
@@ -193,6 +193,28 @@ def test_no_mask_term_without_alpha_and_eikonal_weight_applies():
     batch = rays()
     out = model(batch, background=torch.ones(3), target=batch.target)
     assert set(out.losses) == {"mse"}
+
+
+def test_ramped_weight_exact_small_cases():
+    assert ramped_weight(0, -1.0, 0.1, (0, 0)) == 0.1  # no ramp: the final weight throughout
+    assert [ramped_weight(s, 0.01, 0.1, (10, 20)) for s in (0, 10, 15, 20, 99)] == pytest.approx([0.01, 0.01, 0.055, 0.1, 0.1])
+    assert [ramped_weight(s, 0.0, 1.0, (5, 5)) for s in (4, 5, 6)] == [0.0, 1.0, 1.0]  # a switch
+
+
+def test_the_eikonal_term_follows_its_ramp():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.1, "eikonal_start_weight": 0.01,
+                                             "eikonal_ramp": (10, 20)}), BOX, seed=0)
+    batch = rays()
+    terms = {}
+    for step in (0, 15, 30):
+        model.begin_step(step, None)
+        out = model(batch, background=torch.ones(3), target=batch.target)
+        grad_term = float(out.losses["eikonal"].detach()) / model.eikonal_now
+        terms[step] = (model.eikonal_now, grad_term)
+    assert [w for w, _ in terms.values()] == pytest.approx([0.01, 0.055, 0.1])
+    assert terms[0][1] == pytest.approx(terms[30][1], rel=1e-5)  # same parameters, same (|grad f| - 1)^2: only the weight moved
+    with pytest.raises(ConfigError, match="eikonal_ramp"):
+        SdfConfig(eikonal_ramp=(20, 10))
 
 
 def test_eval_render_needs_no_autograd_and_keeps_no_graph():

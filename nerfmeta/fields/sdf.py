@@ -20,7 +20,8 @@ discrete opacity ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with the 
 :func:`~nerfmeta.render.volume.render_packed`, as for every backbone.
 
 Losses (named terms, :meth:`SdfField.loss_terms`): ``mse``; ``eikonal``: ``(|grad f| - 1)^2``
-at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo); ``mask``: binary
+at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo; optionally ramped up from
+``eikonal_start_weight`` over the steps ``eikonal_ramp``); ``mask``: binary
 cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
 ``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
 ``curvature_weight`` (0: off). Gradients are analytic (autograd, second order for the eikonal
@@ -72,6 +73,18 @@ def annealed_cos(true_cos: torch.Tensor, ratio: float) -> torch.Tensor:
     if ratio >= 1.0:
         return torch.clamp(true_cos, max=0.0)
     return -((1.0 - ratio) * F.relu(0.5 - 0.5 * true_cos) + ratio * F.relu(-true_cos))
+
+
+def ramped_weight(step: int, start: float, final: float, ramp: tuple[int, int]) -> float:
+    """A loss weight that is ``start`` until step ``ramp[0]``, ``final`` from step ``ramp[1]`` on, and linear between.
+
+    ``start < 0`` means no ramp (``final`` throughout); ``ramp[0] == ramp[1]`` is a switch at that step.
+    """
+    if start < 0.0 or step >= ramp[1]:
+        return final
+    if step <= ramp[0]:
+        return start
+    return start + (final - start) * (step - ramp[0]) / (ramp[1] - ramp[0])
 
 
 def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
@@ -135,7 +148,11 @@ class SdfConfig(EncodingChoice):
     numerical_eps: float = 0.01
     """Step of the central differences, in box half-sides."""
     eikonal_weight: float = 0.1
-    """Weight of the eikonal term (|grad f| - 1)^2."""
+    """Weight of the eikonal term (|grad f| - 1)^2 (from ``eikonal_ramp[1]`` on when ``eikonal_start_weight`` is set)."""
+    eikonal_start_weight: float = -1.0
+    """Eikonal weight until step ``eikonal_ramp[0]``, then linear to ``eikonal_weight`` at ``eikonal_ramp[1]`` (< 0: no ramp). A weak term early lets the surface change topology (carve a concavity), the full term later makes it a distance again and clears what the weak one let through."""
+    eikonal_ramp: tuple[int, int] = (0, 0)
+    """Steps ``[start, end]`` of the eikonal weight's ramp (see ``eikonal_start_weight``)."""
     mask_weight: float = 0.1
     """Weight of the mask term (binary cross-entropy of opacity against the scene's alpha; used when rays carry alpha)."""
     curvature_weight: float = 0.0
@@ -164,6 +181,7 @@ class SdfConfig(EncodingChoice):
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
             ("numerical_eps", 0.0 < self.numerical_eps < 0.5), ("eikonal_weight", self.eikonal_weight >= 0.0),
+            ("eikonal_ramp", len(self.eikonal_ramp) == 2 and 0 <= self.eikonal_ramp[0] <= self.eikonal_ramp[1]),
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
@@ -239,6 +257,8 @@ class SdfField(RadianceModel):
         self.occupancy = OccupancyGrid(self._box())
         self.cos_anneal_ratio = 1.0
         """Fraction of the cos anneal done: set by :meth:`begin_step` (a fit), 1 for a model no fit steps (loaded, meta-learned)."""
+        self.eikonal_now = ramped_weight(0, config.eikonal_start_weight, config.eikonal_weight, config.eikonal_ramp)
+        """The eikonal weight of the current step (:func:`ramped_weight`), set by :meth:`begin_step`."""
 
     def _geometric_init(self, in_dim: int) -> None:
         """SAL/IDR's geometric initialisation: the SDF starts as a sphere of radius ``init_radius``.
@@ -395,8 +415,8 @@ class SdfField(RadianceModel):
         cfg = self.config
         terms = {"mse": photometric_mse(out.rgb, target)}
         grad = out.extras["grad"]
-        if grad.shape[0] and cfg.eikonal_weight > 0.0:
-            terms["eikonal"] = cfg.eikonal_weight * ((grad.norm(dim=-1) - 1.0) ** 2).mean()
+        if grad.shape[0] and self.eikonal_now > 0.0:
+            terms["eikonal"] = self.eikonal_now * ((grad.norm(dim=-1) - 1.0) ** 2).mean()
         if "laplacian" in out.extras and out.extras["laplacian"].shape[0]:
             terms["curvature"] = cfg.curvature_weight * out.extras["laplacian"].abs().mean()
         return terms
@@ -404,10 +424,11 @@ class SdfField(RadianceModel):
     # -- structure -----------------------------------------------------------------------------
 
     def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
-        """Advance the cos anneal; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
+        """Advance the cos anneal and the eikonal ramp; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
         a corner is occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
         cfg = self.config
         self.cos_anneal_ratio = min(1.0, step / cfg.cos_anneal_iters) if cfg.cos_anneal_iters else 1.0
+        self.eikonal_now = ramped_weight(step, cfg.eikonal_start_weight, cfg.eikonal_weight, cfg.eikonal_ramp)
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
         margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
