@@ -10,7 +10,7 @@ from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition, total_loss
 from nerfmeta.fields.registry import build_model
-from nerfmeta.fields.sdf import SdfConfig, SdfField, annealed_cos, neus_tau, ramped_weight
+from nerfmeta.fields.sdf import SdfConfig, annealed_cos, neus_tau, ramped_weight
 
 TINY = SdfConfig(depth=2, width=32, feature_dim=4, color_depth=1, color_width=8, n_samples=16, pos_freqs=2, dir_freqs=1,
                  occupancy=False, hash_levels=3, hash_log2_size=8, hash_base_res=2, hash_finest_res=16, nffb_width=4,
