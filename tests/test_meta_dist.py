@@ -24,6 +24,15 @@ ARGS = ["--algo", "maml", "--meta-steps", "3", "--meta-batch", "4", "--support-r
 FAST_RENDER = RenderConfig(supersample=1, max_steps=48)  # the images only need to differ per scene
 
 
+def torchrun_env() -> dict[str, str]:
+    """This repository importable, one thread a process, and no rank variables of an outer run."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    env.pop("RANK", None)
+    env.pop("WORLD_SIZE", None)
+    return env
+
+
 @pytest.mark.slow
 def test_two_processes_learn_the_same_parameters_as_one(tmp_path: Path):
     if not torch.distributed.is_available():
@@ -31,10 +40,7 @@ def test_two_processes_learn_the_same_parameters_as_one(tmp_path: Path):
     coll = tmp_path / "coll"
     generate_collection(CollectionConfig(categories=("mug", "vase"), scenes_per_category=3, views=3, test_views=1,
                                          resolution=12, val_fraction=0.0, test_fraction=0.0, render=FAST_RENDER), coll)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
-           "OMP_NUM_THREADS": "1"}
-    env.pop("RANK", None)
-    env.pop("WORLD_SIZE", None)
+    env = torchrun_env()
     one, two = tmp_path / "one", tmp_path / "two"
     double = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
               "-m", "nerfmeta", "meta-train", str(coll), "--out", str(two), *ARGS]
@@ -97,10 +103,7 @@ def test_the_process_group_is_gone_when_the_context_exits(tmp_path: Path):
         pytest.skip("needs torch.distributed and Linux's /proc")
     script = tmp_path / "worker.py"
     script.write_text(WORKER)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
-           "OMP_NUM_THREADS": "1"}
-    env.pop("RANK", None)
-    env.pop("WORLD_SIZE", None)
+    env = torchrun_env()
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
                            str(script)], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, (done.stdout + done.stderr)[-3000:]

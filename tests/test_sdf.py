@@ -215,6 +215,10 @@ def test_the_eikonal_term_follows_its_ramp():
     assert terms[0][1] == pytest.approx(terms[30][1], rel=1e-5)  # same parameters, same (|grad f| - 1)^2: only the weight moved
     with pytest.raises(ConfigError, match="eikonal_ramp"):
         SdfConfig(eikonal_ramp=(20, 10))
+    with pytest.raises(ConfigError, match="eikonal_ramp"):  # a start weight without a ramp would never be used
+        SdfConfig(eikonal_start_weight=0.01)
+    unstepped = build_model("sdf", model.config, BOX, seed=0)
+    assert unstepped.eikonal_now == 0.1  # a model no fit steps uses the final weight, as the cos anneal
 
 
 def test_eval_render_needs_no_autograd_and_keeps_no_graph():

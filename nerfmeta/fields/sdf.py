@@ -181,7 +181,8 @@ class SdfConfig(EncodingChoice):
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
             ("numerical_eps", 0.0 < self.numerical_eps < 0.5), ("eikonal_weight", self.eikonal_weight >= 0.0),
-            ("eikonal_ramp", len(self.eikonal_ramp) == 2 and 0 <= self.eikonal_ramp[0] <= self.eikonal_ramp[1]),
+            ("eikonal_ramp", len(self.eikonal_ramp) == 2 and 0 <= self.eikonal_ramp[0] <= self.eikonal_ramp[1]
+             and (self.eikonal_start_weight < 0.0 or self.eikonal_ramp[1] > 0)),  # a start weight no step would use
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
@@ -257,8 +258,8 @@ class SdfField(RadianceModel):
         self.occupancy = OccupancyGrid(self._box())
         self.cos_anneal_ratio = 1.0
         """Fraction of the cos anneal done: set by :meth:`begin_step` (a fit), 1 for a model no fit steps (loaded, meta-learned)."""
-        self.eikonal_now = ramped_weight(0, config.eikonal_start_weight, config.eikonal_weight, config.eikonal_ramp)
-        """The eikonal weight of the current step (:func:`ramped_weight`), set by :meth:`begin_step`."""
+        self.eikonal_now = config.eikonal_weight
+        """The eikonal weight of the current step (:func:`ramped_weight`): set by :meth:`begin_step` (a fit), the final weight for a model no fit steps (meta-learned, pretrained), as the cos anneal."""
 
     def _geometric_init(self, in_dim: int) -> None:
         """SAL/IDR's geometric initialisation: the SDF starts as a sphere of radius ``init_radius``.
