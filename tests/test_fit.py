@@ -8,7 +8,7 @@ import torch
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
-from nerfmeta.fit.loop import FitConfig, fit
+from nerfmeta.fit.loop import FitConfig, fit, fit_progress, lr_scale
 from nerfmeta.fit.run import RunConfig, read_metrics, run_fit
 
 # coarse stage, the switch to the fine stage and one growth step all happen within the 90 iterations
@@ -240,3 +240,26 @@ def test_a_run_saved_before_scene_types_resumes_as_a_bounded_object() -> None:
     assert RunConfig.from_json({"scene": "s"}).scene_type == "object"
     assert RunConfig.from_json({"scene": "s", "scene_type": "auto"}).scene_type == "auto"
     assert RunConfig("s").scene_type == "auto"  # new runs detect
+
+
+def test_fit_progress_is_the_further_of_iterations_and_time_and_drives_the_lr_decay():
+    by_iters = FitConfig(iters=200)
+    assert [fit_progress(by_iters, s, 1e9) for s in (0, 50, 200, 400)] == [0.0, 0.25, 1.0, 1.0]  # no budget: time plays no part
+    budget = FitConfig(iters=1000, time_budget_s=60.0)
+    assert fit_progress(budget, 100, 30.0) == 0.5 and fit_progress(budget, 800, 30.0) == 0.8
+    assert lr_scale(budget, 100, 30.0) == pytest.approx(0.1 ** 0.5)
+
+
+def test_the_loop_tells_the_model_its_progress_before_each_step(tiny_scene):
+    from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
+
+    class Recording(DenseGrid):
+        def begin_step(self, step, progress):
+            seen.append((step, progress))
+            return super().begin_step(step, progress)
+
+    seen: list = []
+    scene = load_scene(tiny_scene)
+    fit(Recording(DenseGridConfig(side=4), scene.bounds), scene, FitConfig(iters=4, batch_rays=16, eval_every=0, final_ssim=False,
+                                                                        final_lpips=False), background=torch.ones(3))
+    assert seen == [(0, 0.0), (1, 0.25), (2, 0.5), (3, 0.75)]

@@ -199,6 +199,7 @@ def test_ramped_weight_exact_small_cases():
     assert ramped_weight(0, -1.0, 0.1, (0, 0)) == 0.1  # no ramp: the final weight throughout
     assert [ramped_weight(s, 0.01, 0.1, (10, 20)) for s in (0, 10, 15, 20, 99)] == pytest.approx([0.01, 0.01, 0.055, 0.1, 0.1])
     assert [ramped_weight(s, 0.0, 1.0, (5, 5)) for s in (4, 5, 6)] == [0.0, 1.0, 1.0]  # a switch
+    assert [ramped_weight(p, 0.001, 0.1, (0.4, 0.6)) for p in (0.0, 0.4, 0.5, 0.6, 1.0)] == pytest.approx([0.001, 0.001, 0.0505, 0.1, 0.1])
 
 
 def test_the_eikonal_term_follows_its_ramp():
@@ -215,10 +216,32 @@ def test_the_eikonal_term_follows_its_ramp():
     assert terms[0][1] == pytest.approx(terms[30][1], rel=1e-5)  # same parameters, same (|grad f| - 1)^2: only the weight moved
     with pytest.raises(ConfigError, match="eikonal_ramp"):
         SdfConfig(eikonal_ramp=(20, 10))
-    with pytest.raises(ConfigError, match="eikonal_ramp"):  # a start weight without a ramp would never be used
+    with pytest.raises(ConfigError, match="eikonal_start_weight"):  # a start weight without a ramp would never be used
         SdfConfig(eikonal_start_weight=0.01)
     unstepped = build_model("sdf", model.config, BOX, seed=0)
     assert unstepped.eikonal_now == 0.1  # a model no fit steps uses the final weight, as the cos anneal
+
+
+def test_a_ramp_in_fractions_of_the_fit_follows_its_progress_not_its_steps():
+    config = SdfConfig(**{**TINY.__dict__, "eikonal_weight": 0.1, "eikonal_start_weight": 0.001, "eikonal_ramp_progress": (0.4, 0.6)})
+    model = build_model("sdf", config, BOX, seed=0)
+    seen = []
+    for step, progress in ((0, 0.0), (10, 0.4), (10, 0.5), (10_000, 0.5), (20, 0.6), (20, 1.0)):
+        model.begin_step(step, progress)
+        seen.append(model.eikonal_now)
+    assert seen == pytest.approx([0.001, 0.001, 0.0505, 0.0505, 0.1, 0.1])  # the step count plays no part
+    model.begin_step(0, None)  # stepped outside a fit with a planned end: no progress, the final weight
+    assert model.eikonal_now == 0.1
+
+
+@pytest.mark.parametrize("bad", [
+    {"eikonal_ramp_progress": (0.6, 0.4)},  # backwards
+    {"eikonal_ramp_progress": (0.4, 1.5)},  # past the end of the fit
+    {"eikonal_ramp_progress": (0.4, 0.6), "eikonal_ramp": (10, 20)},  # two ramps for one weight
+])
+def test_a_ramp_in_fractions_is_refused_when_it_cannot_mean_one_thing(bad):
+    with pytest.raises(ConfigError, match="eikonal_ramp"):
+        SdfConfig(eikonal_start_weight=0.01, **bad)
 
 
 def test_eval_render_needs_no_autograd_and_keeps_no_graph():

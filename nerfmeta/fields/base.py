@@ -291,8 +291,13 @@ class RadianceModel(Field):
         plus whatever the backbone adds (e.g. ``tv``); the loss is their sum (:func:`total_loss`)."""
         return {"mse": photometric_mse(out.rgb, target)}
 
-    def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
-        """Called before iteration ``step`` (0-based). Default: nothing changes."""
+    def begin_step(self, step: int, progress: float | None) -> StepEvent:
+        """Called before iteration ``step`` (0-based). Default: nothing changes.
+
+        ``progress`` is how far the fit is towards its end, in [0, 1] (by iterations or by the time budget,
+        :func:`nerfmeta.fit.loop.fit_progress`), for schedules set in fractions of a fit; None where the model
+        is stepped outside a fit with a planned end.
+        """
         return StepEvent()
 
     def stage_ending(self, step: int) -> str | None:

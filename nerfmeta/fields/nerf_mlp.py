@@ -329,7 +329,7 @@ class NerfMLP(RadianceModel):
             sigma_fn=lambda points, _: self.get_density(points)[0], early_stop_eps=self.config.early_stop_eps)
         return SamplingPlan(samples)
 
-    def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
+    def begin_step(self, step: int, progress: float | None) -> StepEvent:
         """``occupancy``: refresh the grid from the density every ``occupancy_every`` steps after the warm-up."""
         cfg = self.config
         if cfg.estimator != "occupancy" or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:

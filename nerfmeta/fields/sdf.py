@@ -21,7 +21,7 @@ discrete opacity ``alpha = (Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with the 
 
 Losses (named terms, :meth:`SdfField.loss_terms`): ``mse``; ``eikonal``: ``(|grad f| - 1)^2``
 at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo; optionally ramped up from
-``eikonal_start_weight`` over the steps ``eikonal_ramp``); ``mask``: binary
+``eikonal_start_weight`` over the steps ``eikonal_ramp`` or the fractions of the fit ``eikonal_ramp_progress``); ``mask``: binary
 cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
 ``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
 ``curvature_weight`` (0: off). Gradients are analytic (autograd, second order for the eikonal
@@ -75,16 +75,17 @@ def annealed_cos(true_cos: torch.Tensor, ratio: float) -> torch.Tensor:
     return -((1.0 - ratio) * F.relu(0.5 - 0.5 * true_cos) + ratio * F.relu(-true_cos))
 
 
-def ramped_weight(step: int, start: float, final: float, ramp: tuple[int, int]) -> float:
-    """A loss weight that is ``start`` until step ``ramp[0]``, ``final`` from step ``ramp[1]`` on, and linear between.
+def ramped_weight(at: float, start: float, final: float, ramp: tuple[float, float]) -> float:
+    """A loss weight that is ``start`` until ``ramp[0]``, ``final`` from ``ramp[1]`` on, and linear between.
 
-    ``start < 0`` means no ramp (``final`` throughout); ``ramp[0] == ramp[1]`` is a switch at that step.
+    ``at`` and ``ramp`` are on one axis: steps, or fractions of the fit (its progress).
+    ``start < 0`` means no ramp (``final`` throughout); ``ramp[0] == ramp[1]`` is a switch there.
     """
-    if start < 0.0 or step >= ramp[1]:
+    if start < 0.0 or at >= ramp[1]:
         return final
-    if step <= ramp[0]:
+    if at <= ramp[0]:
         return start
-    return start + (final - start) * (step - ramp[0]) / (ramp[1] - ramp[0])
+    return start + (final - start) * (at - ramp[0]) / (ramp[1] - ramp[0])
 
 
 def neus_tau(sdf: torch.Tensor, cos: torch.Tensor, delta: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
@@ -148,11 +149,13 @@ class SdfConfig(EncodingChoice):
     numerical_eps: float = 0.01
     """Step of the central differences, in box half-sides."""
     eikonal_weight: float = 0.1
-    """Weight of the eikonal term (|grad f| - 1)^2 (from ``eikonal_ramp[1]`` on when ``eikonal_start_weight`` is set)."""
+    """Weight of the eikonal term (|grad f| - 1)^2 (from the end of its ramp on when ``eikonal_start_weight`` is set)."""
     eikonal_start_weight: float = -1.0
-    """Eikonal weight until step ``eikonal_ramp[0]``, then linear to ``eikonal_weight`` at ``eikonal_ramp[1]`` (< 0: no ramp). A weak term early lets the surface change topology (carve a concavity), the full term later makes it a distance again and clears what the weak one let through."""
+    """Eikonal weight until the start of its ramp (``eikonal_ramp`` in steps or ``eikonal_ramp_progress`` in fractions of the fit), then linear to ``eikonal_weight`` at its end (< 0: no ramp). A weak term early lets the surface change topology (carve a concavity), the full term later makes it a distance again and clears what the weak one let through."""
     eikonal_ramp: tuple[int, int] = (0, 0)
     """Steps ``[start, end]`` of the eikonal weight's ramp (see ``eikonal_start_weight``)."""
+    eikonal_ramp_progress: tuple[float, float] = (0.0, 0.0)
+    """The ramp as fractions ``[start, end]`` of the fit (its iterations or its time budget, whichever is further along, as the learning-rate decay), used instead of ``eikonal_ramp`` when ``end > 0``: the same schedule on a fast or a slow machine."""
     mask_weight: float = 0.1
     """Weight of the mask term (binary cross-entropy of opacity against the scene's alpha; used when rays carry alpha)."""
     curvature_weight: float = 0.0
@@ -181,8 +184,12 @@ class SdfConfig(EncodingChoice):
             ("color_width", self.color_width >= 1), ("init_radius", 0.0 < self.init_radius < 1.0),
             ("n_samples", self.n_samples >= 2), ("gradient", self.gradient in GRADIENTS),
             ("numerical_eps", 0.0 < self.numerical_eps < 0.5), ("eikonal_weight", self.eikonal_weight >= 0.0),
-            ("eikonal_ramp", len(self.eikonal_ramp) == 2 and 0 <= self.eikonal_ramp[0] <= self.eikonal_ramp[1]
-             and (self.eikonal_start_weight < 0.0 or self.eikonal_ramp[1] > 0)),  # a start weight no step would use
+            ("eikonal_ramp", len(self.eikonal_ramp) == 2 and 0 <= self.eikonal_ramp[0] <= self.eikonal_ramp[1]),
+            ("eikonal_ramp_progress", len(self.eikonal_ramp_progress) == 2
+             and 0.0 <= self.eikonal_ramp_progress[0] <= self.eikonal_ramp_progress[1] <= 1.0
+             and not (self.eikonal_ramp_progress[1] > 0.0 and self.eikonal_ramp[1] > 0)),  # one ramp, not two
+            ("eikonal_start_weight", self.eikonal_start_weight < 0.0  # a start weight needs a ramp that some step would reach
+             or self.eikonal_ramp[1] > 0 or self.eikonal_ramp_progress[1] > 0.0),
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
@@ -424,12 +431,12 @@ class SdfField(RadianceModel):
 
     # -- structure -----------------------------------------------------------------------------
 
-    def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
+    def begin_step(self, step: int, progress: float | None) -> StepEvent:
         """Advance the cos anneal and the eikonal ramp; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
         a corner is occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
         cfg = self.config
         self.cos_anneal_ratio = min(1.0, step / cfg.cos_anneal_iters) if cfg.cos_anneal_iters else 1.0
-        self.eikonal_now = ramped_weight(step, cfg.eikonal_start_weight, cfg.eikonal_weight, cfg.eikonal_ramp)
+        self.eikonal_now = self._eikonal_weight_at(step, progress)
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
         margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
@@ -442,6 +449,16 @@ class SdfField(RadianceModel):
         message = f"occupancy grid refreshed: {100 * self.occupancy.occupied_fraction():.1f}% near the surface" \
             if step == cfg.occupancy_warmup else ""
         return StepEvent(False, message)
+
+    def _eikonal_weight_at(self, step: int, progress: float | None) -> float:
+        """The eikonal weight of ``step`` (:func:`ramped_weight`): on the progress axis when the ramp is set in
+        fractions of the fit (the final weight where no fit gives a progress), else on the step axis."""
+        cfg = self.config
+        if cfg.eikonal_ramp_progress[1] > 0.0:
+            if progress is None:
+                return cfg.eikonal_weight
+            return ramped_weight(progress, cfg.eikonal_start_weight, cfg.eikonal_weight, cfg.eikonal_ramp_progress)
+        return ramped_weight(step, cfg.eikonal_start_weight, cfg.eikonal_weight, cfg.eikonal_ramp)
 
     def structure(self) -> dict[str, Any]:
         return {"occupancy_shape": list(self.occupancy.size)}

@@ -637,7 +637,7 @@ class VoxelGrid(RadianceModel):
                     "probe_s": round(time.perf_counter() - start, 3)}
         return [Decision("view_dependent", self.view_dependent, f"view_dependent={self.view_dependent}: {why}", evidence)]
 
-    def begin_step(self, step: int, total_steps: int | None) -> StepEvent:
+    def begin_step(self, step: int, progress: float | None) -> StepEvent:
         cfg = self.config
         if self.stage == "coarse" and step >= cfg.coarse_iters:
             bounds, mask = self._fine_box_and_mask()

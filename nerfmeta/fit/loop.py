@@ -168,12 +168,22 @@ _DIVERGED_HINT = ("lower the learning rates (e.g. --set lr_density=..., --set lr
                   "(a NaN pixel or pose makes every step fail)")
 
 
-def lr_scale(config: FitConfig, step: int, time_s: float) -> float:
-    """Exponential decay factor at the current progress (by iterations or by the time budget)."""
+def fit_progress(config: FitConfig, step: int, time_s: float) -> float:
+    """How far a fit is towards its end, in [0, 1]: by iterations, or by the time budget where that is further along.
+
+    The learning-rate decay (:func:`lr_scale`) and a model's schedules that are set in fractions of the fit
+    (:meth:`~nerfmeta.fields.base.RadianceModel.begin_step`) follow it, so they land in the same place on a
+    fast or a slow machine.
+    """
     progress = step / max(1, config.iters)
     if config.time_budget_s:
         progress = max(progress, time_s / config.time_budget_s)
-    return config.lr_decay ** min(1.0, progress)
+    return min(1.0, progress)
+
+
+def lr_scale(config: FitConfig, step: int, time_s: float) -> float:
+    """Exponential decay factor at the current progress (:func:`fit_progress`)."""
+    return config.lr_decay ** fit_progress(config, step, time_s)
 
 
 def fit(
@@ -305,7 +315,7 @@ def fit(
             state.stop_reason = f"target PSNR {config.target_psnr:g} dB reached"
             break
         t0 = time.perf_counter()
-        event = model.begin_step(state.step, config.iters)
+        event = model.begin_step(state.step, fit_progress(config, state.step, state.time_s))
         note_decisions(event.decisions)
         if event.params_changed:
             optimizer = build_optimizer(model, config)
