@@ -113,6 +113,7 @@ def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mu
     assert 0 < doc["floor_pct_diagonal"] < doc["chamfer_pct_diagonal"]  # an early sphere is far from the mug
     assert doc["topology"]["components"] >= doc["topology"]["main_components"] >= 1
     assert doc["concavity"]["hidden_fraction"] > 0 and 0 <= doc["concavity"]["carved"] <= 1
+    assert set(doc["surface_offset"]) <= {"all", "on_hull", "hidden"} and doc["surface_offset"]["all"]["share"] == 1.0
     assert geometry["floor_pct_diagonal"] > 0 and geometry["topology"]["main_components"] >= 1
     # against its own mesh, the run's surface is far closer than against the truth
     assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
@@ -188,3 +189,38 @@ def test_a_mug_has_a_hidden_cavity_the_truth_carves_and_a_filled_cup_does_not(mu
     assert exact.carved > 0.99
     filled = concavity_figures(_StubSdf(lambda p: torch.full(p.shape[:1], -1.0)), scene, sdf, n_points=20000)
     assert filled.carved == 0.0 and filled.n_hidden == exact.n_hidden
+
+
+def test_offset_figures_exact_small_case():
+    from nerfmeta.geometry.concavity import offset_figures
+
+    offsets = torch.tensor([-0.2, -0.1, 0.1, 0.4])
+    hidden = torch.tensor([True, True, False, False])
+    figures = offset_figures(offsets, {"on_hull": ~hidden, "hidden": hidden, "none": torch.zeros(4, dtype=torch.bool)}, diagonal=2.0)
+    assert set(figures) == {"all", "on_hull", "hidden"}  # an empty part is left out
+    assert figures["all"].mean == pytest.approx(0.05) and figures["all"].mean_abs == pytest.approx(0.2)
+    assert figures["hidden"].share == 0.5 and figures["hidden"].mean == pytest.approx(-0.15)
+    assert figures["hidden"].mean_pct_diagonal == pytest.approx(-7.5) and figures["on_hull"].mean_abs_pct_diagonal == pytest.approx(12.5)
+
+
+def test_surface_offsets_read_a_uniform_shift_everywhere_and_split_the_cup_from_its_hull(mug_scene):
+    from nerfmeta.data.registry import load_scene
+    from nerfmeta.geometry.concavity import surface_offsets
+    from nerfmeta.geometry.truth import ground_truth, scene_sdf_of
+
+    scene = load_scene(mug_scene)
+    sdf, _ = scene_sdf_of(mug_scene)
+    norm = scene.normalization
+    gt = ground_truth(mug_scene, 4000)
+
+    def truth_loaded(p, shift):  # the exact surface in the loaded frame, made fatter by ``shift`` file units
+        offset = torch.as_tensor(norm.offset, dtype=torch.float64)
+        return ((sdf((p.double() - offset) / float(norm.scale)) - shift) * float(norm.scale)).float()
+
+    exact = surface_offsets(_StubSdf(lambda p: truth_loaded(p, 0.0)), scene, gt)
+    fat = surface_offsets(_StubSdf(lambda p: truth_loaded(p, 0.01)), scene, gt)
+    assert exact["on_hull"]["share"] > 0.2 and exact["hidden"]["share"] > 0.1  # the outside, and the cup's inside
+    assert exact["on_hull"]["share"] + exact["hidden"]["share"] == pytest.approx(1.0)
+    for part in ("all", "on_hull", "hidden"):
+        assert abs(exact[part]["mean"]) < 1e-4 and fat[part]["mean"] == pytest.approx(-0.01, abs=1e-4)
+    assert surface_offsets(torch.nn.Module(), scene, gt) is None  # no SDF, no figure

@@ -21,7 +21,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "consistency, in the scene file's units and as %% of the ground truth's bounding-box diagonal, beside the "
             "sampling floor (the Chamfer of two samplings of the ground truth: what a perfect surface scores) and the "
             "mesh's topology (components, genus) and, for a generated scene, how much of its hidden concavity "
-            "(free space inside every view's silhouette, e.g. a cup's inside) the surface leaves open. --gt is a "
+            "(free space inside every view's silhouette, e.g. a cup's inside) the surface leaves open; for an SDF run, its "
+            "signed distance on the true surface (negative: too fat there), overall, on the visual hull (where "
+            "silhouettes pin it) and on hidden surface (a cup's inner wall: placed by colour alone). --gt is a "
             "generated scene (its exact SDF, sampled on the zero level set) or a PLY/OBJ mesh."
         ),
     )
@@ -33,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nerfmeta.geometry.concavity import concavity_figures
+    from nerfmeta.geometry.concavity import concavity_figures, surface_offsets
     from nerfmeta.geometry.load import load_run_model
     from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame, topology_summary
     from nerfmeta.geometry.truth import ground_truths, scene_sdf_of
@@ -51,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
     exact = scene_sdf_of(args.gt)
     if exact is not None and scene.alphas is not None:
         doc["concavity"] = dataclasses.asdict(concavity_figures(model, scene, exact[0], seed=config.seed))
+    offsets = surface_offsets(model, scene, gt)
+    if offsets is not None:
+        doc["surface_offset"] = offsets
     if json_out is not None:
         write_output_json(json_out, doc, option="--json-out")
     json.dump(doc, sys.stdout, indent=2)

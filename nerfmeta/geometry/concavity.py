@@ -7,17 +7,24 @@ fills the visual hull first; where the fill stays, the mesh has a lid (a cup clo
 Chamfer hides a lid farther than its outlier cut from the truth, so :func:`concavity_figures`
 measures it directly: of the points that are free in the truth (true SDF above a margin) yet inside
 the visual hull, the fraction the fitted surface leaves outside.
+
+A cup carved open can still be carved too little: its inner wall too thick. Chamfer does not say where its
+error lies, nor which way, so :func:`surface_offsets` reads a fitted SDF at points of the true surface (its
+signed distance there: negative where the fit is too fat, its surface outside the truth) and splits them in
+two: surface on the visual hull (silhouettes see it, so the mask pins it) and hidden surface (a cup's
+inner wall and inner bottom: only the photometric loss places it).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any, Callable
 
 import torch
 
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.geometry.extract import surface_function
+from nerfmeta.geometry.truth import SurfaceSamples
 from nerfmeta.priors.carve import visual_hull
 
 HIDDEN_MARGIN = 0.02
@@ -71,3 +78,64 @@ def concavity_figures(model: RadianceModel, scene: Any, true_sdf: Callable[[torc
     diagonal = float((file_points.max(0).values - file_points.min(0).values).norm())
     outside = values < surface.level if surface.inside_above else values > surface.level
     return carved_fraction(in_hull, truth > HIDDEN_MARGIN * diagonal, outside)
+
+
+@dataclass(frozen=True)
+class OffsetFigures:
+    """A fitted SDF's signed distance at points of one part of the true surface (the scene file's units).
+
+    Attributes:
+        share: the part's fraction of the true surface's samples.
+        mean: mean signed distance (negative: the fitted surface lies outside the truth, the fit is too fat).
+        mean_abs: mean absolute distance.
+        mean_pct_diagonal, mean_abs_pct_diagonal: the same as % of the true surface's bounding-box diagonal.
+    """
+
+    share: float
+    mean: float
+    mean_abs: float
+    mean_pct_diagonal: float
+    mean_abs_pct_diagonal: float
+
+
+def offset_figures(offsets: torch.Tensor, parts: dict[str, torch.Tensor], diagonal: float) -> dict[str, OffsetFigures]:
+    """Figures of ``offsets`` (N,) over all samples (``all``) and over each part, a (N,) bool mask (an empty part is left out)."""
+    out = {}
+    n = offsets.shape[0]
+    for name, keep in {"all": torch.ones(n, dtype=torch.bool), **parts}.items():
+        if int(keep.sum()) == 0:
+            continue
+        o = offsets[keep].double()
+        mean, mean_abs = float(o.mean()), float(o.abs().mean())
+        out[name] = OffsetFigures(int(keep.sum()) / n, mean, mean_abs, 100.0 * mean / diagonal, 100.0 * mean_abs / diagonal)
+    return out
+
+
+def surface_offsets(model: RadianceModel, scene: Any, gt: SurfaceSamples, *, n_points: int = 100_000) -> dict[str, dict] | None:
+    """A fitted SDF's signed distance on the true surface, overall, on the visual hull and on hidden surface.
+
+    A true-surface point is on the visual hull when the point ``HIDDEN_MARGIN`` of the diagonal outward along its
+    normal is outside the hull (no view's silhouette covers it), else hidden (inside a concavity).
+
+    Args:
+        model: a fitted model with ``sdf_world`` (an SDF backbone); others give None.
+        scene: the loaded scene (its training ``alphas`` make the visual hull).
+        gt: samples of the true surface in the scene file's frame; the first ``n_points`` are used.
+
+    Returns:
+        ``{"all": ..., "on_hull": ..., "hidden": ...}`` of :class:`OffsetFigures` as dicts, or None.
+    """
+    if not hasattr(model, "sdf_world") or scene.alphas is None:
+        return None
+    points = torch.as_tensor(gt.points[:n_points], dtype=torch.float64)
+    normals = torch.as_tensor(gt.normals[:n_points], dtype=torch.float64)
+    diagonal = float((points.max(0).values - points.min(0).values).norm())
+    norm = scene.normalization
+    outward = norm.apply_points(points + HIDDEN_MARGIN * diagonal * normals).float()
+    idx = scene.split_indices("train")
+    in_hull, _ = visual_hull(outward, scene.alphas[idx] > 0.5, scene.poses[idx].to(outward), scene.intrinsics[idx].to(outward), misses=0)
+    loaded = norm.apply_points(points).to(scene.bounds.dtype)
+    with torch.no_grad():
+        offsets = torch.cat([model.sdf_world(p) for p in loaded.split(65536)]).double() / float(norm.scale)
+    figures = offset_figures(offsets, {"on_hull": ~in_hull, "hidden": in_hull}, diagonal)
+    return {name: asdict(f) for name, f in figures.items()}
