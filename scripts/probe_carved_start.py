@@ -7,8 +7,9 @@ generated scene's exact SDF. Optionally ``--colour-first`` steps with the SDF ne
 colour learns the start's geometry. Then ``--iters`` steps of the ordinary fit loop (512 rays). Prints, as JSON
 lines after each stage: the hidden concavity left open (:mod:`nerfmeta.geometry.concavity`), ``solid_held`` (the
 fraction of points at least 0.004 world units inside the true solid that the network puts inside: a thin wall
-the regression has not converged on shows as holes here, not in the concavity), test PSNR and Chamfer at 100k
-points and 128^3. BENCHMARKS.md, *Surfaces: carving concavities*, section 1, and *Surfaces: the open cup* have
+the regression has not converged on shows as holes here, not in the concavity), test PSNR, Chamfer at 100k
+points and 128^3, and the mean signed distance of the network on the true surface, on the visual hull and on
+hidden surface (``offset_*_pct``, % of the diagonal, negative: too fat; :func:`~nerfmeta.geometry.concavity.surface_offsets`). BENCHMARKS.md, *Surfaces: carving concavities*, section 1, and *Surfaces: the open cup* have
 what it measured.
 
 Usage::
@@ -35,7 +36,7 @@ from nerfmeta.fields.grid_ops import interp_cf  # noqa: E402
 from nerfmeta.fields.registry import build_model  # noqa: E402
 from nerfmeta.fields.sdf import SdfConfig  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
-from nerfmeta.geometry.concavity import concavity_figures  # noqa: E402
+from nerfmeta.geometry.concavity import concavity_figures, surface_offsets  # noqa: E402
 from nerfmeta.geometry.extract import grid_values, surface_function  # noqa: E402
 from nerfmeta.geometry.load import load_run_model  # noqa: E402
 from nerfmeta.geometry.metrics import GeometryConfig  # noqa: E402
@@ -111,9 +112,10 @@ def main() -> int:
             held = float((model.sdf_world(solid) < 0).float().mean())
         mesh = mesh_in_file_frame(model, scene, 128, colors=False)
         metrics = evaluate_mesh(mesh, reference, GeometryConfig(n_points=100_000, resolution=128, floor=False))
+        offsets = {f"offset_{part}_pct": round(f["mean_pct_diagonal"], 3) for part, f in surface_offsets(model, scene, reference).items()}
         print(json.dumps({"stage": stage, **extra, "test_psnr": psnr, "solid_held": round(held, 3),
-                          "chamfer_pct_diagonal": round(metrics.chamfer_pct_diagonal, 3), "s": round(float(model.inv_s()), 1),
-                          **dataclasses.asdict(concavity_figures(model, scene, exact))}), flush=True)
+                          "chamfer_pct_diagonal": round(metrics.chamfer_pct_diagonal, 3), "s": round(float(model.inv_s().detach()), 1),
+                          **dataclasses.asdict(concavity_figures(model, scene, exact)), **offsets}), flush=True)
 
     def run_fit(iters: int) -> float | None:
         result = fit(model, scene, FitConfig(iters=iters, batch_rays=512, eval_every=0, eval_views=2, checkpoint_every=0,
