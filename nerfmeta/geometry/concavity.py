@@ -46,6 +46,13 @@ class ConcavityFigures:
     n_hidden: int
 
 
+def in_training_hull(scene: Any, points: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: which loaded-frame points (N, 3) lie inside every training view's silhouette (alpha > 0.5), no misses allowed."""
+    idx = scene.split_indices("train")
+    inside, _ = visual_hull(points, scene.alphas[idx] > 0.5, scene.poses[idx].to(points), scene.intrinsics[idx].to(points), misses=0)
+    return inside
+
+
 def carved_fraction(in_hull: torch.Tensor, true_free: torch.Tensor, fitted_outside: torch.Tensor) -> ConcavityFigures:
     """The figures from per-point booleans, each (N,): in the visual hull, free in the truth, outside the fitted surface."""
     hidden = in_hull & true_free
@@ -65,11 +72,10 @@ def concavity_figures(model: RadianceModel, scene: Any, true_sdf: Callable[[torc
     """
     if scene.alphas is None:
         raise ValueError(f"{scene.source}: no alpha channel, so no silhouettes to build the visual hull from")
-    idx = scene.split_indices("train")
     box = scene.bounds.to(torch.float32)
     gen = torch.Generator().manual_seed(seed)
     points = box[0] + (box[1] - box[0]) * torch.rand(n_points, 3, generator=gen)
-    in_hull, _ = visual_hull(points, scene.alphas[idx] > 0.5, scene.poses[idx].to(points), scene.intrinsics[idx].to(points), misses=0)
+    in_hull = in_training_hull(scene, points)
     file_points = scene.normalization.invert_points(points.double())
     with torch.no_grad():
         truth = true_sdf(file_points)
@@ -132,8 +138,7 @@ def surface_offsets(model: RadianceModel, scene: Any, gt: SurfaceSamples, *, n_p
     diagonal = float((points.max(0).values - points.min(0).values).norm())
     norm = scene.normalization
     outward = norm.apply_points(points + HIDDEN_MARGIN * diagonal * normals).float()
-    idx = scene.split_indices("train")
-    in_hull, _ = visual_hull(outward, scene.alphas[idx] > 0.5, scene.poses[idx].to(outward), scene.intrinsics[idx].to(outward), misses=0)
+    in_hull = in_training_hull(scene, outward)
     loaded = norm.apply_points(points).to(scene.bounds.dtype)
     with torch.no_grad():
         offsets = torch.cat([model.sdf_world(p) for p in loaded.split(65536)]).double() / float(norm.scale)
