@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, early_termination_keep, grid_points, march_packed
+from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, early_termination_keep, grid_points, march_packed, split_sections
 from nerfmeta.render.sampling import fixed_step_samples
 from nerfmeta.render.volume import packed_transmittance
 
@@ -110,3 +110,24 @@ def test_packed_samples_select_keeps_order_and_far():
     s = PackedSamples(torch.tensor([0, 0, 1, 2]), torch.tensor([1.0, 2.0, 1.5, 0.3]), torch.full((4,), 0.1), torch.ones(3))
     sub = s.select(torch.tensor([1, 3]))
     assert sub.ray_idx.tolist() == [0, 2] and torch.equal(sub.t, s.t[[1, 3]]) and sub.far is s.far
+
+
+def test_split_sections_refines_marked_sections_in_place():
+    s = PackedSamples(torch.tensor([0, 0, 1, 1, 1]), torch.tensor([1.0, 2.0, 0.5, 1.5, 2.5]), torch.ones(5), torch.full((2,), 3.0))
+    r = split_sections(s, torch.tensor([False, True, False, True, False]), 4)
+    assert r.ray_idx.tolist() == [0] * 5 + [1] * 6 and r.far is s.far
+    assert r.t.tolist() == [1.0, 1.625, 1.875, 2.125, 2.375, 0.5, 1.125, 1.375, 1.625, 1.875, 2.5]
+    assert r.delta.tolist() == [1.0] + [0.25] * 4 + [1.0] + [0.25] * 4 + [1.0]
+    assert split_sections(s, torch.ones(5, dtype=torch.bool), 1) is s
+
+
+def test_split_sections_keeps_each_rays_length_and_order():
+    near = torch.tensor([0.0, 0.3, 1.0], dtype=torch.float64)
+    far = torch.tensor([1.0, 2.05, 1.0], dtype=torch.float64)
+    s = PackedSamples(*march_packed(near, far, 0.1, torch.full((3,), 0.5, dtype=torch.float64)), far)
+    split = torch.arange(len(s)) % 3 == 0
+    r = split_sections(s, split, 5)
+    assert len(r) == len(s) + 4 * int(split.sum())
+    torch.testing.assert_close(torch.zeros(3, dtype=torch.float64).index_add(0, r.ray_idx, r.delta), far - near)
+    same_ray = r.ray_idx[1:] == r.ray_idx[:-1]
+    assert bool((r.t[1:][same_ray] > r.t[:-1][same_ray]).all())

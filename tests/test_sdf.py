@@ -92,6 +92,32 @@ def test_numerical_gradient_matches_analytic_for_a_smooth_encoding():
     torch.testing.assert_close(central, analytic, rtol=1e-3, atol=1e-4)
 
 
+@pytest.mark.parametrize("encoding,pos_freqs", [("pe", 2), ("pe", 0), ("fourier", 2), ("nffb", 2)])
+def test_the_written_out_chain_rule_is_autograds_gradient_and_second_order(encoding, pos_freqs):
+    """Training's gradient (:meth:`SdfField._sdf_with_gradient`) against autograd's ``create_graph`` one in float64: the same
+    ``grad f``, and the same parameter gradients of an eikonal + sdf loss (the second-order path the fit trains through)."""
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "encoding": encoding, "pos_freqs": pos_freqs, "gradient": "analytic"}),
+                        BOX, seed=0).double()
+    x = torch.rand(64, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 1.6 - 0.8
+
+    def loss_and_grads(sdf, grad):
+        loss = ((grad.norm(dim=-1) - 1.0) ** 2).mean() + sdf.square().mean()
+        return grad, torch.autograd.grad(loss, [p for p in model.parameters() if p.requires_grad], allow_unused=True)
+
+    xg = x.clone().requires_grad_(True)
+    sdf, _ = model.sdf_and_feature(xg)
+    (grad,) = torch.autograd.grad(sdf.sum(), xg, create_graph=True)
+    ref_grad, ref = loss_and_grads(sdf, grad)
+    ev = model.evaluate(x)
+    new_grad, new = loss_and_grads(ev.sdf, ev.grad)
+    # softplus is linear past 100 z = 20, where its slope is 1 and the sigmoid's 1 - 2e-9: agreement to ~1e-7
+    torch.testing.assert_close(new_grad, ref_grad, rtol=1e-6, atol=1e-9)
+    for a, b in zip(new, ref):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-9)
+
+
 def test_tetrahedral_gradient_is_exact_for_a_linear_function():
     from nerfmeta.fields.sdf import TETRAHEDRON
 
@@ -260,6 +286,43 @@ def test_occupancy_refresh_keeps_the_surface():
     with torch.no_grad():
         out = model(rays(), background=torch.ones(3))
     assert out.samples_evaluated > 0 and float(out.acc.max()) > 0.5
+
+
+def test_a_wall_thinner_than_the_step_is_opaque_once_its_sections_are_split():
+    """NeuS's opacity of a slab 0.02 thick marched every 0.05: where no sample falls inside it, light leaks through; splitting
+    the sections within a step of the surface makes it as opaque as NeuS's logistic lets it be at every jitter (float64, exact SDF)."""
+    from nerfmeta.render.estimators import PackedSamples, march_packed, split_sections
+
+    jitter = torch.linspace(0.0, 0.99, 50, dtype=torch.float64)
+    near, far = torch.zeros(50, dtype=torch.float64), torch.ones(50, dtype=torch.float64)
+    coarse = PackedSamples(*march_packed(near, far, 0.05, jitter), far)
+
+    def transmittance(s: PackedSamples) -> torch.Tensor:
+        sdf = (s.t - 0.5).abs() - 0.01  # the slab [0.49, 0.51]; the ray is its normal
+        cos = torch.where(s.t < 0.5, -1.0, 1.0).to(s.t).clamp(max=0.0)
+        tau = neus_tau(sdf, cos, s.delta, torch.tensor(400.0, dtype=torch.float64))
+        return torch.exp(-torch.zeros(50, dtype=torch.float64).index_add(0, s.ray_idx, tau))
+
+    before = transmittance(coarse)
+    coarse_sdf = (coarse.t - 0.5).abs() - 0.01
+    after = transmittance(split_sections(coarse, coarse_sdf.abs() < coarse.delta, 8))
+    floor = 1.0 / (1.0 + math.exp(4.0))  # sigmoid(-s * half-thickness): what NeuS's logistic lets through at best
+    assert float(before.max()) > 0.9  # a ray with no sample in the wall sees through it
+    assert float(after.max()) < 4.0 * floor and float(after.mean()) < 1.3 * floor
+
+
+def test_refine_splits_only_the_sections_near_the_surface():
+    base = build_model("sdf", TINY, BOX, seed=0)
+    refined = build_model("sdf", SdfConfig(**{**TINY.__dict__, "refine": 4}), BOX, seed=0)
+    r = rays()
+    plain, split = base.sample(r, train=False, generator=None).samples, refined.sample(r, train=False, generator=None).samples
+    with torch.no_grad():
+        near_surface = base.sdf_and_feature(base.to_box(plain.points(r.origins, r.directions)))[0].abs() < plain.delta  # h = 1
+    assert 0 < int(near_surface.sum()) < len(plain) and len(split) == len(plain) + 3 * int(near_surface.sum())
+    torch.testing.assert_close(torch.zeros(len(r)).index_add(0, split.ray_idx, split.delta),
+                               torch.zeros(len(r)).index_add(0, plain.ray_idx, plain.delta))
+    with pytest.raises(ConfigError, match="refine"):
+        SdfConfig(refine=0)
 
 
 def test_bad_settings_are_refused():
