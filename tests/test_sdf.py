@@ -288,6 +288,23 @@ def test_occupancy_refresh_keeps_the_surface():
     assert out.samples_evaluated > 0 and float(out.acc.max()) > 0.5
 
 
+def test_a_narrower_occupancy_margin_marches_a_narrower_band_that_still_holds_the_surface():
+    def occupied(margin: float) -> tuple[float, torch.Tensor]:
+        config = SdfConfig(**{**TINY.__dict__, "occupancy": True, "occupancy_warmup": 0, "occupancy_resolution": 32,
+                              "n_samples": 64, "occupancy_margin": margin, "init_variance": 0.6})  # s = 403: a sharp surface
+        model = build_model("sdf", config, BOX, seed=0)
+        model.begin_step(0, None)
+        with torch.no_grad():
+            return model.occupancy.occupied_fraction(), model(rays(), background=torch.ones(3)).acc
+
+    wide, acc_wide = occupied(3.0)
+    narrow, acc_narrow = occupied(1.0)
+    assert 0.0 < narrow < 0.75 * wide
+    torch.testing.assert_close(acc_narrow, acc_wide, atol=2e-3, rtol=0.0)  # the band still holds every crossing
+    with pytest.raises(ConfigError, match="occupancy_margin"):
+        SdfConfig(occupancy_margin=0.0)
+
+
 def test_a_wall_thinner_than_the_step_is_opaque_once_its_sections_are_split():
     """NeuS's opacity of a slab 0.02 thick marched every 0.05: where no sample falls inside it, light leaks through; splitting
     the sections within a step of the surface makes it as opaque as NeuS's logistic lets it be at every jitter (float64, exact SDF)."""

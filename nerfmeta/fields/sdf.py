@@ -171,6 +171,9 @@ class SdfConfig(EncodingChoice):
     """Skip empty space with the shared occupancy grid, refreshed from |sdf| after the warm-up."""
     occupancy_resolution: int = 64
     """Occupancy grid corners per axis."""
+    occupancy_margin: float = 3.0
+    """A corner is occupied when ``|f|`` there is below this many grid cells plus a marching step: the band around the
+    surface that is marched (narrower: fewer samples per ray, but a surface that moves faster than the refreshes may leave it)."""
     occupancy_warmup: int = 50
     """Steps before the first occupancy refresh."""
     occupancy_every: int = 25
@@ -198,7 +201,7 @@ class SdfConfig(EncodingChoice):
             ("eikonal_start_weight", self.eikonal_start_weight < 0.0  # a start weight needs a ramp that some step would reach
              or self.eikonal_ramp[1] > 0 or self.eikonal_ramp_progress[1] > 0.0),
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
-            ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_every", self.occupancy_every >= 1),
+            ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_margin", self.occupancy_margin > 0.0), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
             ("variance_lr", 0.0 <= self.variance_lr < math.inf), ("cos_anneal_iters", self.cos_anneal_iters >= 0),
         )
@@ -468,13 +471,13 @@ class SdfField(RadianceModel):
 
     def begin_step(self, step: int, progress: float | None) -> StepEvent:
         """Advance the cos anneal and the eikonal ramp; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
-        a corner is occupied when the surface may be within three cells (``|f| < 3 cells + a marching step``)."""
+        a corner is occupied when the surface may be within ``occupancy_margin`` cells (``|f| < margin cells + a marching step``)."""
         cfg = self.config
         self.cos_anneal_ratio = min(1.0, step / cfg.cos_anneal_iters) if cfg.cos_anneal_iters else 1.0
         self.eikonal_now = self._eikonal_weight_at(step, progress)
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
-        margin = 3.0 * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
+        margin = cfg.occupancy_margin * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
         size = (cfg.occupancy_resolution,) * 3
 
         def near_surface(points: torch.Tensor) -> torch.Tensor:
