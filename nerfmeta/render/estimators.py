@@ -86,9 +86,9 @@ def split_sections(samples: PackedSamples, split: torch.Tensor, parts: int) -> P
     src = torch.repeat_interleave(torch.arange(len(samples), device=samples.t.device), counts, output_size=total)
     first = torch.cumsum(counts, 0) - counts
     j = (torch.arange(total, device=samples.t.device) - first.index_select(0, src)).to(samples.t.dtype)
-    n = counts.index_select(0, src).to(samples.t.dtype)
-    delta = samples.delta.index_select(0, src) / n
-    t = samples.t.index_select(0, src) - 0.5 * samples.delta.index_select(0, src) + (j + 0.5) * delta
+    whole = samples.delta.index_select(0, src)
+    delta = whole / counts.index_select(0, src).to(samples.t.dtype)
+    t = samples.t.index_select(0, src) - 0.5 * whole + (j + 0.5) * delta
     return PackedSamples(samples.ray_idx.index_select(0, src), t, delta, samples.far)
 
 
