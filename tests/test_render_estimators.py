@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, early_termination_keep, grid_points, march_packed, split_sections
+from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, early_termination_keep, grid_points, march_packed, split_sections, values_near
 from nerfmeta.render.sampling import fixed_step_samples
 from nerfmeta.render.volume import packed_transmittance
 
@@ -104,6 +104,25 @@ def test_prune_only_unmarks_and_refresh_follows_the_field():
     assert int(grid.binaries.sum()) == int((corners.norm(dim=-1) < 0.6).sum())
     grid.refresh(lambda p: torch.ones(len(p)), (3, 4, 5), threshold=0.5, dilation=0)  # refresh adds marks
     assert grid.binaries.shape == (3, 4, 5) and bool(grid.binaries.all())
+
+
+def test_values_near_evaluates_only_below_the_limit():
+    points = torch.arange(6.0).reshape(6, 1).expand(6, 3)
+    seen = []
+
+    def fn(p):
+        seen.append(p[:, 0].tolist())
+        return p[:, 0] * 10.0
+
+    values, n = values_near(fn, points, None, 1.0, chunk=4)  # nothing known: every point, in chunks
+    assert values.tolist() == [0.0, 10.0, 20.0, 30.0, 40.0, 50.0] and n == 6 and seen == [[0, 1, 2, 3], [4, 5]]
+    seen.clear()
+    known = torch.tensor([0.5, 9.0, 1.5, 0.0, 3.0, 2.0])
+    values, n = values_near(fn, points, known, 2.0)
+    assert seen == [[0.0, 2.0, 3.0]] and n == 3
+    assert values.tolist() == [0.0, 9.0, 20.0, 30.0, 3.0, 2.0] and known.tolist()[2] == 1.5  # known is not written
+    values, n = values_near(fn, points, known, -1.0)
+    assert n == 0 and torch.equal(values, known)
 
 
 def test_packed_samples_select_keeps_order_and_far():

@@ -11,6 +11,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition, total_loss
 from nerfmeta.fields.registry import build_model
 from nerfmeta.fields.sdf import SdfConfig, annealed_cos, neus_tau, ramped_weight
+from nerfmeta.render.estimators import dilate, grid_points
 
 TINY = SdfConfig(depth=2, width=32, feature_dim=4, color_depth=1, color_width=8, n_samples=16, pos_freqs=2, dir_freqs=1,
                  occupancy=False, hash_levels=3, hash_log2_size=8, hash_base_res=2, hash_finest_res=16, nffb_width=4,
@@ -303,6 +304,45 @@ def test_a_narrower_occupancy_margin_marches_a_narrower_band_that_still_holds_th
     torch.testing.assert_close(acc_narrow, acc_wide, atol=2e-3, rtol=0.0)  # the band still holds every crossing
     with pytest.raises(ConfigError, match="occupancy_margin"):
         SdfConfig(occupancy_margin=0.0)
+
+
+def test_narrow_refreshes_mark_what_full_ones_would_and_a_jump_brings_full_ones_back():
+    config = SdfConfig(**{**TINY.__dict__, "occupancy": True, "occupancy_warmup": 0, "occupancy_every": 1, "occupancy_resolution": 32,
+                          "n_samples": 64, "occupancy_margin": 1.0, "occupancy_reach": 2.0, "occupancy_full_every": 4})
+    model = build_model("sdf", config, BOX, seed=0)
+    cell = 2.0 / 31
+    band = cell + 2.0 / 64
+    corners = model.to_box(grid_points(model.occupancy.aabb, (32,) * 3).reshape(-1, 3))
+
+    def full_marks() -> torch.Tensor:
+        with torch.no_grad():
+            return dilate((model.sdf_and_feature(corners)[0].abs() < band).view(32, 32, 32), 1)
+
+    def grow(cells: float) -> None:  # a constant shift moves |f| by at most that much everywhere
+        with torch.no_grad():
+            model.sdf[-1].bias[0] -= cells * cell
+
+    narrow = []
+    for step in range(12):  # half a cell per refresh: never more than the reach between full refreshes
+        grow(0.5)
+        evaluated = model.band.evaluated
+        model.begin_step(step, None)
+        assert torch.equal(model.occupancy.binaries, full_marks())
+        narrow.append(model.band.evaluated - evaluated)
+    assert model.band.missed == 0 and model.band.period == 4 and model.band.full < 12
+    assert min(narrow) < 0.5 * 32 ** 3 and max(narrow) == 32 ** 3
+    while model.band.since_full + 1 >= model.band.period:  # the next refresh is a narrow one
+        model.begin_step(12, None)
+    grow(6.0)  # a jump beyond the reach
+    model.begin_step(13, None)
+    while model.band.since_full:  # narrow refreshes until the next full one
+        model.begin_step(14, None)
+    assert model.band.missed > 0 and model.band.period == 1
+    assert torch.equal(model.occupancy.binaries, full_marks())
+    copy = build_model("sdf", config, BOX, seed=1)
+    copy.begin_step(0, None)
+    copy.load_state_dict(model.state_dict())  # new weights: remembered distances no longer hold
+    assert copy.band.distance is None and copy.band.period == 1
 
 
 def test_a_wall_thinner_than_the_step_is_opaque_once_its_sections_are_split():

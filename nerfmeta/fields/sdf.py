@@ -10,7 +10,8 @@ Frame: points are mapped *isotropically* into the box's frame, ``x = (p - centre
 the box's largest half-side, so ``sdf`` stays a distance (world distance = ``h * sdf``) and the
 same weights mean the same shape at any scene scale.
 
-Rendering (NeuS): the shared :class:`~nerfmeta.render.estimators.OccupancyGrid` marches the box;
+Rendering (NeuS): the shared :class:`~nerfmeta.render.estimators.OccupancyGrid` marches the box, marked where
+``|f|`` is within a band of the surface (most refreshes evaluate only the corners near the band: :class:`NarrowBand`);
 each sample's SDF ``f``, its gradient and the ray direction give the section's estimated SDF at
 both ends, ``f -+ cos * delta / 2`` (``cos``: NeuS's annealed slope, :func:`annealed_cos`, exactly
 ``min(d . n, 0)`` once ``cos_anneal_iters`` have passed, or from the start by default), and the
@@ -48,7 +49,7 @@ from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, Re
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.encodings import GRID_ENCODINGS, EncodingChoice, build_encoding, encoding_config
 from nerfmeta.fields.grid_ops import interp_gather
-from nerfmeta.render.estimators import OccupancyGrid, split_sections
+from nerfmeta.render.estimators import OccupancyGrid, dilate, grid_points, split_sections, values_near
 from nerfmeta.render.volume import render_packed
 
 GRADIENTS = ("auto", "analytic", "numerical")
@@ -58,6 +59,46 @@ SOFTPLUS_BETA = 100.0
 """Sharpness of the SDF network's softplus activations (IDR, NeuS: 100)."""
 UNIT_BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 """The box frame's cube, which the colour grid covers."""
+
+
+@dataclass
+class NarrowBand:
+    """The occupancy refreshes' memory: ``|f|`` at the grid's corners and when the next full refresh is due.
+
+    Attributes:
+        corners: (K, 3) the grid's corners in the box frame, or None before the first refresh.
+        distance: (K,) ``|f|`` at them (box half-sides) as last evaluated, or None (the next refresh is full).
+        period: refreshes from one full refresh to the next.
+        since_full: refreshes since the last full one.
+        refreshes, full, evaluated, missed: counts over the fit: refreshes, full ones, corners evaluated, and corners
+            a full refresh marked that the narrow refreshes before it had left out.
+    """
+
+    corners: torch.Tensor | None = None
+    distance: torch.Tensor | None = None
+    period: int = 1
+    since_full: int = 0
+    refreshes: int = 0
+    full: int = 0
+    evaluated: int = 0
+    missed: int = 0
+
+    def forget(self) -> None:
+        """Drop what was remembered (the field changed outside a fit step): the next refresh is full."""
+        self.distance, self.period, self.since_full = None, 1, 0
+
+    def record(self, distance: torch.Tensor, evaluated: int, full: bool, band: float, limit: float, most: int) -> None:
+        """Keep a refresh's ``distance``; after a full one, double the period (up to ``most``) when no corner within
+        ``band`` was beyond ``limit`` before it, else fall back to 1."""
+        if full and self.distance is not None:
+            missed = int(((distance < band) & (self.distance >= limit)).sum())
+            self.missed += missed
+            self.period = 1 if missed else min(2 * self.period, most)
+        self.since_full = 0 if full else self.since_full + 1
+        self.distance = distance
+        self.refreshes += 1
+        self.full += int(full)
+        self.evaluated += evaluated
 
 
 def annealed_cos(true_cos: torch.Tensor, ratio: float) -> torch.Tensor:
@@ -180,6 +221,12 @@ class SdfConfig(EncodingChoice):
     """Steps before the first occupancy refresh."""
     occupancy_every: int = 25
     """Steps between occupancy refreshes."""
+    occupancy_reach: float = 2.0
+    """Grid cells the surface may move between full refreshes: the refreshes in between evaluate only the corners whose
+    last ``|f|`` was within the band plus this reach (0: every refresh evaluates every corner)."""
+    occupancy_full_every: int = 8
+    """Most refreshes from one full refresh to the next. The period starts at 1 and doubles after every full refresh
+    that finds no corner the narrow ones left out, and falls back to 1 after one that does."""
     lr: float = 1e-3
     """Adam learning rate of the SDF and colour networks."""
     variance_lr: float = 1e-3
@@ -204,6 +251,7 @@ class SdfConfig(EncodingChoice):
              or self.eikonal_ramp[1] > 0 or self.eikonal_ramp_progress[1] > 0.0),
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_margin", self.occupancy_margin > 0.0), ("occupancy_every", self.occupancy_every >= 1),
+            ("occupancy_reach", self.occupancy_reach >= 0.0), ("occupancy_full_every", self.occupancy_full_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
             ("variance_lr", 0.0 <= self.variance_lr < math.inf), ("cos_anneal_iters", self.cos_anneal_iters >= 0),
         )
@@ -275,6 +323,9 @@ class SdfField(RadianceModel):
         cdims = [encoding_dim(3, config.color_pos_freqs) + 3 + dir_dim + grid_dim + config.feature_dim] + [config.color_width] * config.color_depth + [3]
         self.color = nn.ModuleList(nn.Linear(cdims[i], cdims[i + 1]) for i in range(len(cdims) - 1))
         self.occupancy = OccupancyGrid(self._box())
+        self.band = NarrowBand()
+        """What the occupancy refreshes remember between calls (not saved: a loaded model starts with a full refresh)."""
+        self.register_load_state_dict_post_hook(lambda module, _keys: module.band.forget())
         self.cos_anneal_ratio = 1.0
         """Fraction of the cos anneal done: set by :meth:`begin_step` (a fit), 1 for a model no fit steps (loaded, meta-learned)."""
         self.eikonal_now = config.eikonal_weight
@@ -482,16 +533,30 @@ class SdfField(RadianceModel):
         self.eikonal_now = self._eikonal_weight_at(step, progress)
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
-        margin = cfg.occupancy_margin * 2.0 / (cfg.occupancy_resolution - 1) + 2.0 / cfg.n_samples  # box half-sides
-        size = (cfg.occupancy_resolution,) * 3
-
-        def near_surface(points: torch.Tensor) -> torch.Tensor:
-            return (self.sdf_and_feature(self.to_box(points))[0].abs() < margin).to(points.dtype)
-
-        self.occupancy.refresh(near_surface, size, 0.5)
+        self._refresh_occupancy()
         message = f"occupancy grid refreshed: {100 * self.occupancy.occupied_fraction():.1f}% near the surface" \
             if step == cfg.occupancy_warmup else ""
         return StepEvent(False, message)
+
+    @torch.no_grad()
+    def _refresh_occupancy(self) -> None:
+        """Mark the corners where ``|f|`` is below the band (``occupancy_margin`` cells plus a marching step), dilated by
+        one cell. A full refresh evaluates every corner; the ones between (see ``occupancy_full_every``) only the corners
+        whose last ``|f|`` was within the band plus ``occupancy_reach`` cells, the others keeping their marks (unmarked)."""
+        cfg = self.config
+        size = (cfg.occupancy_resolution,) * 3
+        cell = 2.0 / (cfg.occupancy_resolution - 1)  # box half-sides
+        band = cfg.occupancy_margin * cell + 2.0 / cfg.n_samples
+        limit = band + cfg.occupancy_reach * cell
+        band_state = self.band
+        if band_state.corners is None or band_state.corners.shape[0] != math.prod(size):
+            band_state.forget()
+            band_state.corners = self.to_box(grid_points(self.occupancy.aabb, size).reshape(-1, 3))
+        full = band_state.distance is None or cfg.occupancy_reach <= 0.0 or band_state.since_full + 1 >= band_state.period
+        distance, evaluated = values_near(lambda x: self.sdf_and_feature(x)[0].abs(), band_state.corners,
+                                          None if full else band_state.distance, limit)
+        band_state.record(distance, evaluated, full, band, limit, cfg.occupancy_full_every)
+        self.occupancy.mark(dilate((distance < band).view(size), 1))
 
     def _eikonal_weight_at(self, step: int, progress: float | None) -> float:
         """The eikonal weight of ``step`` (:func:`ramped_weight`): on the progress axis when the ramp is set in

@@ -401,8 +401,34 @@ class OccupancyGrid(nn.Module):
 
         An update that would leave nothing marked keeps every corner marked instead.
         """
-        occupied = self.occupied_by(alpha_fn, size, threshold, dilation)
+        self.mark(self.occupied_by(alpha_fn, size, threshold, dilation))
+
+    @torch.no_grad()
+    def mark(self, occupied: torch.Tensor) -> None:
+        """Mark exactly the corners of ``occupied`` (X, Y, Z) bool; nothing marked marks every corner instead."""
         self.binaries = occupied if bool(occupied.any()) else torch.ones_like(occupied)
+
+
+@torch.no_grad()
+def values_near(fn: Callable[[torch.Tensor], torch.Tensor], points: torch.Tensor, known: torch.Tensor | None, limit: float,
+                chunk: int = 1 << 18) -> tuple[torch.Tensor, int]:
+    """``fn`` again at the ``points`` whose ``known`` value is below ``limit``, ``known`` kept elsewhere.
+
+    A narrow-band refresh: where ``fn`` is a distance that moves little between calls, only the points that
+    were near the band need a new value. ``known=None`` evaluates every point.
+
+    Returns:
+        (K,) the values, and how many points were evaluated.
+    """
+    def evaluate(p: torch.Tensor) -> torch.Tensor:
+        return torch.cat([fn(c) for c in p.split(chunk)]) if len(p) else p.new_zeros(0)
+
+    if known is None:
+        return evaluate(points), len(points)
+    idx = torch.nonzero(known < limit)[:, 0]
+    values = known.clone()
+    values[idx] = evaluate(points.index_select(0, idx)).to(values.dtype)
+    return values, len(idx)
 
 
 def dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
