@@ -342,7 +342,7 @@ def test_narrow_refreshes_mark_what_full_ones_would_and_a_jump_brings_full_ones_
     copy = build_model("sdf", config, BOX, seed=1)
     copy.begin_step(0, None)
     copy.load_state_dict(model.state_dict())  # new weights: remembered distances no longer hold
-    assert copy.band.distance is None and copy.band.period == 1
+    assert copy.band.distance is None and copy.band.corners is None and copy.band.period == 1
 
 
 def test_a_wall_thinner_than_the_step_is_opaque_once_its_sections_are_split():

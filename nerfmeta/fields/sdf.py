@@ -66,26 +66,25 @@ class NarrowBand:
     """The occupancy refreshes' memory: ``|f|`` at the grid's corners and when the next full refresh is due.
 
     Attributes:
-        corners: (K, 3) the grid's corners in the box frame, or None before the first refresh.
+        corners: (K, 3) the grid's corners in the box frame, or None (made at the next refresh: they follow ``bounds``).
         distance: (K,) ``|f|`` at them (box half-sides) as last evaluated, or None (the next refresh is full).
         period: refreshes from one full refresh to the next.
         since_full: refreshes since the last full one.
-        refreshes, full, evaluated, missed: counts over the fit: refreshes, full ones, corners evaluated, and corners
-            a full refresh marked that the narrow refreshes before it had left out.
+        full, evaluated, missed: counts over the fit: full refreshes, corners evaluated, and corners a full refresh
+            marked that the narrow refreshes before it had left out.
     """
 
     corners: torch.Tensor | None = None
     distance: torch.Tensor | None = None
     period: int = 1
     since_full: int = 0
-    refreshes: int = 0
     full: int = 0
     evaluated: int = 0
     missed: int = 0
 
     def forget(self) -> None:
-        """Drop what was remembered (the field changed outside a fit step): the next refresh is full."""
-        self.distance, self.period, self.since_full = None, 1, 0
+        """Drop what was remembered (the field or its box changed outside a fit step): the next refresh is full."""
+        self.corners, self.distance, self.period, self.since_full = None, None, 1, 0
 
     def record(self, distance: torch.Tensor, evaluated: int, full: bool, band: float, limit: float, most: int) -> None:
         """Keep a refresh's ``distance``; after a full one, double the period (up to ``most``) when no corner within
@@ -96,7 +95,6 @@ class NarrowBand:
             self.period = 1 if missed else min(2 * self.period, most)
         self.since_full = 0 if full else self.since_full + 1
         self.distance = distance
-        self.refreshes += 1
         self.full += int(full)
         self.evaluated += evaluated
 
@@ -549,8 +547,7 @@ class SdfField(RadianceModel):
         band = cfg.occupancy_margin * cell + 2.0 / cfg.n_samples
         limit = band + cfg.occupancy_reach * cell
         band_state = self.band
-        if band_state.corners is None or band_state.corners.shape[0] != math.prod(size):
-            band_state.forget()
+        if band_state.corners is None:
             band_state.corners = self.to_box(grid_points(self.occupancy.aabb, size).reshape(-1, 3))
         full = band_state.distance is None or cfg.occupancy_reach <= 0.0 or band_state.since_full + 1 >= band_state.period
         distance, evaluated = values_near(lambda x: self.sdf_and_feature(x)[0].abs(), band_state.corners,

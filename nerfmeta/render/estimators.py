@@ -378,8 +378,7 @@ class OccupancyGrid(nn.Module):
             threshold: alpha above which a corner is occupied.
             dilation: voxels the occupied set grows by (a cube of side ``2 * dilation + 1``).
         """
-        pts = grid_points(self.aabb, size).reshape(-1, 3)
-        alpha = torch.cat([alpha_fn(p) for p in pts.split(chunk)]) if len(pts) else pts.new_zeros(0)
+        alpha = evaluate_in_chunks(alpha_fn, grid_points(self.aabb, size).reshape(-1, 3), chunk)
         return dilate(alpha.view(size) > threshold, dilation)
 
     @torch.no_grad()
@@ -420,15 +419,17 @@ def values_near(fn: Callable[[torch.Tensor], torch.Tensor], points: torch.Tensor
     Returns:
         (K,) the values, and how many points were evaluated.
     """
-    def evaluate(p: torch.Tensor) -> torch.Tensor:
-        return torch.cat([fn(c) for c in p.split(chunk)]) if len(p) else p.new_zeros(0)
-
     if known is None:
-        return evaluate(points), len(points)
+        return evaluate_in_chunks(fn, points, chunk), len(points)
     idx = torch.nonzero(known < limit)[:, 0]
     values = known.clone()
-    values[idx] = evaluate(points.index_select(0, idx)).to(values.dtype)
+    values[idx] = evaluate_in_chunks(fn, points.index_select(0, idx), chunk).to(values.dtype)
     return values, len(idx)
+
+
+def evaluate_in_chunks(fn: Callable[[torch.Tensor], torch.Tensor], points: torch.Tensor, chunk: int) -> torch.Tensor:
+    """(K,) ``fn`` at ``points`` (K, 3), ``chunk`` points at a time so a whole grid fits memory."""
+    return torch.cat([fn(c) for c in points.split(chunk)]) if len(points) else points.new_zeros(0)
 
 
 def dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
