@@ -8,8 +8,11 @@ second of every view, their median, the test PSNR and the samples evaluated per 
 
 Usage::
 
-    OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X]
+    .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X]
         [--orbit N --out DIR] [--weights]
+
+Renders use torch's thread count (one worker thread per torch thread on a CPU, see
+:func:`nerfmeta.fit.evaluate.render_rays`); ``OMP_NUM_THREADS=1`` measures one core, as sessions 5-8 did.
 
 With ``--weights`` it also prints, for the first test view, how the samples' alphas and compositing
 weights are spread (what decides how many samples must be coloured and whether early termination pays).
@@ -97,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a fit run folder with a checkpoint")
     parser.add_argument("--views", type=int, default=0, help="render only the first N test views (0: all)")
-    parser.add_argument("--chunk", type=int, default=0, help="rays per chunk (0: the run's chunk_rays)")
+    parser.add_argument("--chunk", type=int, default=0, help="most rays per chunk (0: the run's chunk_rays; a CPU also caps it at CPU_CHUNK_RAYS)")
     parser.add_argument("--profile", action="store_true", help="print the torch profiler's table for the first view")
     parser.add_argument("--stop-eps", type=float, default=None,
                         help="grid: test-time early termination threshold (0: the one-pass path without it; default: the run's)")

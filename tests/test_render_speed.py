@@ -82,3 +82,49 @@ def test_grid_evaluation_renders_match_the_reference_path_and_training_is_untouc
     ta = fast(rays, background=white, train=True, generator=g1)
     tb = slow(rays, background=white, train=True, generator=g2)
     assert ta.samples_evaluated == tb.samples_evaluated and torch.equal(ta.rgb, tb.rgb)
+
+
+def test_cpu_render_chunks_and_threads_change_nothing_but_the_speed(monkeypatch):
+    """``render_rays`` on a CPU: the colours and sample count of one big chunk, whatever the chunk size and
+    the number of worker threads; torch's thread count restored; the caller's grad mode reaches the workers."""
+    import nerfmeta.fit.evaluate as evaluate
+
+    model = _trained_like_grid(VoxelGridConfig(coarse_iters=0, num_voxels=32**3, growth_steps=(), mlp_width=16, feature_dim=4))
+    model.eval()
+    o, d, near, far = _rays(301, seed=6, dtype=torch.float32)
+    rays, white = RayBatch(o, d, near, far), torch.ones(3)
+    with torch.no_grad():
+        whole = model(rays, background=white)
+        monkeypatch.setattr(evaluate, "CPU_CHUNK_RAYS", 37)  # 9 chunks, the last one short
+        threads = torch.get_num_threads()
+        for workers in (1, 3):
+            rgb, samples = evaluate.render_rays(model, rays, white, workers=workers)
+            assert samples == whole.samples_evaluated
+            torch.testing.assert_close(rgb, whole.rgb, rtol=0, atol=1e-6)
+            assert torch.get_num_threads() == threads
+    rgb, _ = evaluate.render_rays(model, rays, white, workers=2)
+    assert rgb.requires_grad  # rendered with gradients where the caller asked for them
+
+
+def test_channels_last_copies_live_only_while_kept():
+    """Inside ``kept`` a copy is made once and reused (nested blocks share it); after the block, or outside
+    one, every call copies the grid as it is now: no copy outlives a change of its grid. A deep copy
+    of the owner starts empty."""
+    import copy
+
+    from nerfmeta.fields.grid_ops import ChannelsLastCopies
+
+    grid = torch.nn.Parameter(torch.arange(2 * 3 * 4 * 5, dtype=torch.float32).reshape(2, 3, 4, 5))
+    copies = ChannelsLastCopies()
+    loose = copies.get("g", grid)
+    assert torch.equal(loose, grid.detach()) and loose.stride(0) == 1  # channels innermost
+    assert copies.get("g", grid) is not loose
+    with copies.kept():
+        first = copies.get("g", grid)
+        with copies.kept():
+            assert copies.get("g", grid) is first
+        assert copies.get("g", grid) is first and copy.deepcopy(copies)._copies == {}
+    with torch.no_grad():
+        grid.data = grid.data + 1.0  # a change no version counter sees
+    with copies.kept():
+        assert torch.equal(copies.get("g", grid), grid.detach())

@@ -23,8 +23,9 @@ so checkpoints and the model zoo keep loading.
 from __future__ import annotations
 
 import abc
+import contextlib
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, ContextManager
 
 import torch
 from torch import nn
@@ -234,6 +235,11 @@ class RadianceModel(Field):
     def recipe_notes(self) -> dict[str, Any]:
         """Config values worth quoting in a pretrained model's recipe line (default: none)."""
         return {}
+
+    def render_session(self) -> ContextManager[None]:
+        """A block in which the model renders test-time chunks of one or more whole views and is not trained,
+        so it may keep derived tensors across chunks (default: nothing kept)."""
+        return contextlib.nullcontext()
 
     def sample(self, rays: RayBatch, *, train: bool, generator: torch.Generator | None) -> SamplingPlan:
         """The estimator: packed samples of ``rays`` (jittered with ``generator`` when ``train``)."""

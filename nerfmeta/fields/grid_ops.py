@@ -21,6 +21,8 @@ clamped to its faces.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 import torch.nn.functional as F
@@ -205,6 +207,51 @@ def interp_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 def channels_last(grid: torch.Tensor) -> torch.Tensor:
     """A (C, X, Y, Z) copy of ``grid`` (no gradient) stored channels-last: one read per corner in :func:`interp_coords`."""
     return grid.detach().unsqueeze(0).contiguous(memory_format=torch.channels_last_3d)[0]
+
+
+class ChannelsLastCopies:
+    """Channels-last copies of a module's grids, kept only while a whole-view render runs (:meth:`kept`).
+
+    A test-time render split into many chunks then copies each grid once, not once per chunk; outside
+    :meth:`kept` nothing is kept, so a copy can never outlive a change of its grid (optimiser steps,
+    fused ones included, and ``.data`` assignments leave no trace a cache could check). A deep copy or a
+    pickle of the owner starts empty.
+    """
+
+    def __init__(self) -> None:
+        self._copies: dict[str, torch.Tensor] = {}
+        self._depth = 0
+
+    @contextmanager
+    def kept(self) -> Iterator[None]:
+        """Keep the copies made inside the block (nested blocks share them); drop them all at its end."""
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+            if self._depth == 0:
+                self._copies.clear()
+
+    @property
+    def keeping(self) -> bool:
+        """Inside :meth:`kept`."""
+        return self._depth > 0
+
+    def get(self, name: str, grid: torch.Tensor) -> torch.Tensor:
+        """A channels-last copy of the (C, X, Y, Z) ``grid``: the one kept as ``name`` inside :meth:`kept`."""
+        if not self._depth:
+            return channels_last(grid)
+        copy = self._copies.get(name)
+        if copy is None:  # two render threads may both make it: the same values either way
+            copy = self._copies[name] = channels_last(grid)
+        return copy
+
+    def __deepcopy__(self, memo: dict) -> "ChannelsLastCopies":
+        return ChannelsLastCopies()
+
+    def __getstate__(self) -> dict:
+        return {"_copies": {}, "_depth": 0}
 
 
 def take_columns(a: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:

@@ -40,8 +40,9 @@ compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in 
 lookups use :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
 computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders (no
 gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
-on channels-last copies of the colour grids, made per render call): the same values, 1.8x the rays per
-second on a contracted beer frame and 1.1-1.2x on lego (BENCHMARKS.md, *Faster test renders*).
+on channels-last copies of the colour grids, made once per whole-view render, :meth:`VoxelGrid.render_session`,
+not per chunk): the same values, 1.8x the rays per second on a contracted beer frame
+and 1.1-1.2x on lego (BENCHMARKS.md, *Faster test renders*).
 An optional distortion loss (``distortion_weight``, mip-NeRF 360) gathers each ray's weight.
 
 Defaults: DirectVoxGO's, except where a 60-second budget on a 2-core CPU asked otherwise (each
@@ -57,7 +58,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, ContextManager
 
 import torch
 import torch.nn.functional as F
@@ -68,7 +69,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Decision, Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.grid_ops import (
-    channels_last,
+    ChannelsLastCopies,
     corners_from_coords,
     grid_coords,
     grid_points,
@@ -378,6 +379,7 @@ class VoxelGrid(RadianceModel):
         # reproducible) but only registered when the fine stage starts.
         mlp = ColorMLP(config.feature_dim, encoding_dim(3, config.dir_freqs), config.mlp_width, config.mlp_depth)
         object.__setattr__(self, "_pending_mlp", mlp)
+        self._render_copies = ChannelsLastCopies()  # channels-last colour grids, kept while a view renders
         if config.coarse_iters > 0:
             self._init_coarse(self.scene_bounds.clone(), voxel_layout(self.scene_bounds, config.coarse_num_voxels)[0])
         else:
@@ -746,8 +748,9 @@ class VoxelGrid(RadianceModel):
 
         The embedding is the trilinear corners (indices, weights), (8, N) each, shared by the colour
         lookups. Without gradient (test-time renders) it is the corner coordinates (3, N) alone, and
-        every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy
-        of a colour grid when the samples outnumber an eighth of its voxels): the same values, faster.
+        every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy of
+        a colour grid, kept for a whole view inside :meth:`render_session`, else made when the samples outnumber
+        an eighth of its voxels): the same values, faster.
         """
         if self.box is not None:
             points = self.box.contract(points)
@@ -759,13 +762,18 @@ class VoxelGrid(RadianceModel):
         raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
         return F.softplus(raw + self.shift) / self.unit, (idx, w)
 
+    def render_session(self) -> ContextManager[None]:
+        """Keep the colour grids' channels-last copies while a whole view renders (see :meth:`get_density`)."""
+        return self._render_copies.kept()
+
     def _colour_values(self, name: str, embedding: tuple[torch.Tensor, ...], sel: torch.Tensor | None) -> torch.Tensor:
         """(C, K) values of the colour grid ``name`` at the samples ``sel`` (all when None) of ``embedding``."""
         grid = getattr(self, name)
         if len(embedding) == 1:  # test time: corner coordinates
             x = embedding[0] if sel is None else take_columns(embedding[0], sel)
-            if 8 * x.shape[1] >= grid[0].numel():  # the channels-last copy costs less than it saves
-                return interp_coords(channels_last(grid), x)
+            # the copy costs less than it saves when kept for a whole view, or for this many samples
+            if self._render_copies.keeping or 8 * x.shape[1] >= grid[0].numel():
+                return interp_coords(self._render_copies.get(name, grid), x)
             return trilinear_gather(grid.view(grid.shape[0], -1), *corners_from_coords(x, self.size))
         idx, w = embedding
         if sel is not None:

@@ -61,7 +61,7 @@ class FitConfig:
     checkpoint_every: int = bounded(500, low=0)
     """Write a checkpoint every this many iterations (0: only at the end)."""
     chunk_rays: int = bounded(16384, low=1)
-    """Rays rendered at once during evaluation."""
+    """Most rays rendered at once during evaluation (on a CPU also at most ``nerfmeta.fit.evaluate.CPU_CHUNK_RAYS``, in worker threads)."""
     stage_end_eval: bool = True
     """With a target PSNR, evaluate (like ``eval_every``) when the model ends a stage, so a stage that already meets the target ends the fit and the next is never built (False: scheduled evaluations only)."""
     final_ssim: bool = True
