@@ -374,6 +374,48 @@ def recalibrate(cached: dict, config, before: bool = False) -> dict:
     return result
 
 
+def ensemble_figures(work: Path, collection: Path, fresh: Path, seeds: list[int]) -> dict:
+    """The networks of ``seeds`` (trained in ``work``) judged as one ensemble on every scene of ``fresh``.
+
+    Each network is calibrated as ``classifier train`` does; a scene's category is the argmax of the networks' mean
+    scene probabilities and its score the mean of their ``combined`` scores (each already in units of its own known
+    validation spread); the threshold is the ``keep_fraction`` quantile of the known validation scenes' mean scores.
+    Returns known right and not flagged, held-out flagged, the fresh AUROC and the scenes got wrong.
+    """
+    import torch
+
+    from classifier.predict import (auroc, calibrate_threshold, combined_score, leave_one_out_class_scores,
+                                    scene_distances, scene_probabilities, scene_scores)
+    from classifier.train import calibrate_inputs, score_table
+
+    val, probs, scores = [], [], []
+    for seed in seeds:
+        out = work / f"classifier_seed{seed}"
+        cached, config = cached_outputs(out, collection, fresh), recipe_config(out)
+        categories, data = tuple(cached["categories"]), cached["inputs"]
+        stats, _, metrics = calibrate_inputs(data, config, len(categories))
+        known = score_table(data.val, stats)
+        distances = torch.stack([scene_distances(f, stats) for f, _ in data.val])
+        shape = stats.train_scale if config.class_scale_prior == "train" else None
+        loo = leave_one_out_class_scores(distances, data.val_labels, len(categories),
+                                         metrics["calibration"]["scale_prior_scenes"], shape)
+        val.append(combined_score(known["energy"], loo, stats.score_norm))
+        probs.append(torch.stack([scene_probabilities(r["logits"]) for r in cached["fresh"]]))
+        scores.append(torch.tensor([scene_scores(r["logits"], r["features"], stats)["combined"] for r in cached["fresh"]]))
+    threshold = calibrate_threshold(torch.stack(val).mean(0), config.keep_fraction)
+    score, predicted = torch.stack(scores).mean(0), torch.stack(probs).mean(0).argmax(-1)
+    rows = cached["fresh"]
+    is_known = torch.tensor([r["category"] in categories for r in rows])
+    right = torch.tensor([r["category"] == categories[int(k)] for r, k in zip(rows, predicted)]) & (score >= threshold)
+    return {
+        "known_correct_and_known": float(right[is_known].double().mean()),
+        "holdout_detection_rate": float((score[~is_known] < threshold).double().mean()),
+        "auroc": auroc(score[is_known], score[~is_known]),
+        "errors": [r["scene"] for r, k, ok in zip(rows, is_known, right) if k and not ok]
+        + [f"{r['scene']} (not flagged)" for r, k, s in zip(rows, is_known, score) if not k and s >= threshold],
+    }
+
+
 def fresh_section_text(runs: list[dict], heading: str, command: str, train_args: list[str], fresh_args: list[str]) -> str:
     """The BENCHMARKS.md section of the fresh-scene benchmark: the targets on the median over ``runs``, then each run.
 
@@ -474,6 +516,9 @@ def main() -> int:
     parser.add_argument("--fresh-seed", type=int, default=None,
                         help="judge on every scene of a fresh collection of this seed (FRESH_ARGS: other view counts) "
                              "instead of the training collection's test scenes; issue 14's targets")
+    parser.add_argument("--ensembles", default="",
+                        help="with --fresh-seed: also judge groups of the trained seeds as ensembles, e.g. 0,1,2/3,4,5 "
+                             "(mean probabilities and mean combined score; ensemble_figures)")
     parser.add_argument("--write", action="store_true", help="record the results in BENCHMARKS.md")
     args = parser.parse_args()
     holdout = args.holdout
@@ -529,6 +574,11 @@ def fresh_benchmark(collection: Path, work: Path, args: argparse.Namespace, trai
                f"--seed S" + (" " + args.extra if args.extra else ""))
     text = fresh_section_text(runs, heading, command, [*train_args, "--seed", str(seed)], fresh_args)
     print(text)
+    for group in filter(None, args.ensembles.split("/")):
+        figures = ensemble_figures(work, collection, fresh, [int(v) for v in group.split(",")])
+        print(f"ensemble of seeds {group}: known right and not flagged {100 * figures['known_correct_and_known']:.1f} %, "
+              f"held-out flagged {100 * figures['holdout_detection_rate']:.1f} %, AUROC {figures['auroc']:.3f}; "
+              f"wrong: {', '.join(figures['errors'])}")
     (work / "bench_fresh_result.json").write_text(json.dumps(
         [{k: r[k] for k in ("train_seed", "result", "old", "train_s")} for r in runs], indent=2))
     if args.write:
