@@ -128,3 +128,20 @@ def test_channels_last_copies_live_only_while_kept():
         grid.data = grid.data + 1.0  # a change no version counter sees
     with copies.kept():
         assert torch.equal(copies.get("g", grid), grid.detach())
+
+
+def test_colour_mlp_in_pieces_equals_one_pass(monkeypatch):
+    """Without gradient the colour MLP runs its rows in pieces (cache-sized); the logits are those of one pass."""
+    import nerfmeta.fields.voxel_grid as voxel_grid
+
+    torch.manual_seed(0)
+    mlp = voxel_grid.ColorMLP(feature_dim=4, view_dim=9, width=16, depth=3)
+    for p in mlp.parameters():
+        torch.nn.init.normal_(p, std=0.5)
+    features, view = torch.randn(1001, 4), torch.randn(40, 9)
+    ray_idx = torch.sort(torch.randint(0, 40, (1001,))).values
+    whole = mlp(features, view, ray_idx)  # grad enabled: one pass
+    monkeypatch.setattr(voxel_grid, "MLP_PIECE_ROWS", 97)
+    with torch.no_grad():
+        pieces = mlp(features, view, ray_idx)
+    torch.testing.assert_close(pieces, whole.detach(), rtol=0, atol=1e-6)
