@@ -28,9 +28,9 @@ class ViewRender:
 CPU_CHUNK_RAYS = 1024
 """Most rays a test-time render chunk holds on a CPU: a small chunk's intermediates stay in the cores' caches,
 and worker threads each render whole chunks. Two-core CPU, two threads, against 16384-ray chunks with
-two-threaded operators: beer 180 x 320 (137 samples per ray) 1.6-1.9x the rays per second, lego 100 x 100
-(24 samples per ray) 1.0-1.5x; 256 or 2048 rays were slower on one or the other (BENCHMARKS.md,
-*Test-view rendering speed*)."""
+two-threaded operators: beer 180 x 320 (138 samples per ray) 2.1x the rays per second, lego 100 x 100
+(24 samples per ray) 0.9-1.4x; 256 or 2048 rays were slower on one or the other (BENCHMARKS.md,
+*Small chunks on every core*)."""
 
 
 @contextmanager
