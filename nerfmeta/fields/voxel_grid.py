@@ -83,7 +83,7 @@ from nerfmeta.fields.grid_ops import (
 )
 from nerfmeta.data.scene_type import focus_point, view_directions
 from nerfmeta.render.contraction import InnerBox, inner_box_from_cameras, to_march
-from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, contracted_interval
+from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, contracted_interval, evaluate_in_chunks
 from nerfmeta.render.volume import Composite, packed_distortion, softplus_shift_for_alpha
 
 AUTO_VOXELS_PER_PIXEL = 0.88
@@ -702,11 +702,11 @@ class VoxelGrid(RadianceModel):
     @torch.no_grad()
     def alpha_per_step(self, points: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
         """Alpha over one step (``stepsize`` units) at (N, 3) world points, from the current density grid."""
-        out = []
-        for p in points.split(chunk):
+        def alpha(p: torch.Tensor) -> torch.Tensor:
             raw = interp_cf(self._density_grid(), p, self.bounds)[:, 0]
-            out.append(-torch.expm1(-F.softplus(raw + self.shift) * self.config.stepsize))
-        return torch.cat(out) if out else points.new_zeros(0)
+            return -torch.expm1(-F.softplus(raw + self.shift) * self.config.stepsize)
+
+        return evaluate_in_chunks(alpha, points, chunk)
 
     @torch.no_grad()
     def _fine_box_and_mask(self) -> tuple[torch.Tensor, torch.Tensor | None]:
