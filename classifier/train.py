@@ -350,9 +350,7 @@ def calibrate_inputs(
             prior = select_scale_prior(distances, y, n_classes, SCALE_PRIOR_GRID, shape)
             chosen_by = "leave-one-out likelihood of the validation distances"
     stats = replace(stats, class_scale=fit_class_scale(distances, y, n_classes, prior, shape).float())
-    known = score_table(data.val, stats)
-    if len(labels) >= 2:
-        known["class_mahalanobis"] = leave_one_out_class_scores(distances, y, n_classes, prior, shape)
+    known = known_val_scores(data, stats, distances, n_classes, prior, shape)
     stats = replace(stats, score_norm=fit_score_norm(known["energy"], known["class_mahalanobis"]).float())
     known["combined"] = combined_score(known["energy"], known["class_mahalanobis"], stats.score_norm)
     thresholds, rule_notes = threshold_for_rule(data, stats, known, distances, config, prior)
@@ -381,6 +379,27 @@ def calibrate_inputs(
             entry["holdout_val_auroc"] = auroc(known[name], held[name])
         metrics["scores"][name] = entry
     return stats, thresholds, metrics
+
+
+def known_val_scores(
+    data: CalibrationInputs, stats: FeatureStats, distances: torch.Tensor, n_classes: int, prior: float,
+    shape: torch.Tensor | None,
+) -> dict[str, torch.Tensor]:
+    """Score name -> (n_val,) scores of the known validation scenes, ``class_mahalanobis`` leave-one-out where
+    there are two scenes or more (:func:`calibrate_inputs`; ``combined`` is left to the caller, it needs the norm
+    these scores give).
+
+    Args:
+        data: the network's outputs.
+        stats: the fitted statistics, class scale included.
+        distances: (n_val, n_classes) the scenes' distances to each class mean.
+        n_classes: number of known classes.
+        prior: the class scale's prior, in scenes; shape: its per-class shape (None: pooled).
+    """
+    known = score_table(data.val, stats)
+    if len(data.val_labels) >= 2:
+        known["class_mahalanobis"] = leave_one_out_class_scores(distances, data.val_labels, n_classes, prior, shape)
+    return known
 
 
 def threshold_for_rule(

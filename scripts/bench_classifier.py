@@ -379,14 +379,13 @@ def ensemble_figures(work: Path, collection: Path, fresh: Path, seeds: list[int]
 
     Each network is calibrated as ``classifier train`` does; a scene's category is the argmax of the networks' mean
     scene probabilities and its score the mean of their ``combined`` scores (each already in units of its own known
-    validation spread); the threshold is the ``keep_fraction`` quantile of the known validation scenes' mean scores.
+    validation spread); the threshold is drawn from the known validation scenes' mean scores by the recipe's rule.
     Returns known right and not flagged, held-out flagged, the fresh AUROC and the scenes got wrong.
     """
     import torch
 
-    from classifier.predict import (auroc, calibrate_threshold, combined_score, leave_one_out_class_scores,
-                                    scene_distances, scene_probabilities, scene_scores)
-    from classifier.train import calibrate_inputs, score_table
+    from classifier.predict import auroc, calibrate_threshold, combined_score, scene_distances, scene_probabilities, scene_scores
+    from classifier.train import calibrate_inputs, known_val_scores
 
     val, probs, scores = [], [], []
     for seed in seeds:
@@ -394,15 +393,13 @@ def ensemble_figures(work: Path, collection: Path, fresh: Path, seeds: list[int]
         cached, config = cached_outputs(out, collection, fresh), recipe_config(out)
         categories, data = tuple(cached["categories"]), cached["inputs"]
         stats, _, metrics = calibrate_inputs(data, config, len(categories))
-        known = score_table(data.val, stats)
         distances = torch.stack([scene_distances(f, stats) for f, _ in data.val])
         shape = stats.train_scale if config.class_scale_prior == "train" else None
-        loo = leave_one_out_class_scores(distances, data.val_labels, len(categories),
-                                         metrics["calibration"]["scale_prior_scenes"], shape)
-        val.append(combined_score(known["energy"], loo, stats.score_norm))
+        known = known_val_scores(data, stats, distances, len(categories), metrics["calibration"]["scale_prior_scenes"], shape)
+        val.append(combined_score(known["energy"], known["class_mahalanobis"], stats.score_norm))
         probs.append(torch.stack([scene_probabilities(r["logits"]) for r in cached["fresh"]]))
         scores.append(torch.tensor([scene_scores(r["logits"], r["features"], stats)["combined"] for r in cached["fresh"]]))
-    threshold = calibrate_threshold(torch.stack(val).mean(0), config.keep_fraction)
+    threshold = calibrate_threshold(torch.stack(val).mean(0), config.keep_fraction, config.threshold_rule)
     score, predicted = torch.stack(scores).mean(0), torch.stack(probs).mean(0).argmax(-1)
     rows = cached["fresh"]
     is_known = torch.tensor([r["category"] in categories for r in rows])
