@@ -117,7 +117,8 @@ def evaluate_views(
     was_training = model.training
     model.eval()
     try:
-        renders = tuple(render_view(model, scene, v, background, chunk=chunk) for v in views)
+        with model.render_session():  # the views share what the model keeps per render (e.g. the grid's copies)
+            renders = tuple(render_view(model, scene, v, background, chunk=chunk) for v in views)
     finally:
         model.train(was_training)
     psnrs = [float(mse_to_psnr(((r.rgb - r.target) ** 2).mean().clamp(min=MSE_FLOOR))) for r in renders]
