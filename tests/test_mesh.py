@@ -122,3 +122,40 @@ def test_mesh_cli_refuses_to_overwrite_and_writes_a_readable_ply(tiny_scene, tmp
     capsys.readouterr()
     assert main(["mesh", str(run), "--out", str(out), "--resolution", "24"]) == 2
     assert "--overwrite" in capsys.readouterr().err
+
+
+class DeviceProbe(torch.nn.Module):
+    """A field whose weights live on the ``meta`` device (a stand-in for a GPU, which tests cannot count on);
+    it records the device of every input and answers with zeros on the CPU."""
+
+    def __init__(self, sdf: bool):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.empty(1, device="meta"))
+        self.seen: set[str] = set()
+        if sdf:
+            self.sdf_world = self._zeros
+
+    def _zeros(self, *inputs):
+        self.seen.update(x.device.type for x in inputs if isinstance(x, torch.Tensor))
+        return torch.zeros(len(inputs[0]))
+
+    def get_density(self, points):
+        return self._zeros(points), None
+
+    def get_outputs(self, embedding, t, dirs, ray_idx):
+        self._zeros(dirs, ray_idx)
+        return torch.zeros(len(dirs), 3)
+
+
+@pytest.mark.parametrize("sdf", [True, False])
+def test_surfaces_and_colours_are_read_on_the_fields_device(sdf):
+    """Points made on the CPU (lattices, mesh vertices) reach a field on another device there (a CUDA fit's
+    summary and 'nerfmeta mesh' of a CUDA run failed with 'Expected all tensors to be on the same device')."""
+    from nerfmeta.geometry.extract import vertex_colors
+
+    probe = DeviceProbe(sdf)
+    values = surface_function(probe, torch.tensor([[-1.0] * 3, [1.0] * 3])).values(torch.rand(5, 3))
+    assert values.device.type == "cpu" and probe.seen == {"meta"}
+    probe.seen.clear()
+    mesh = Mesh(TETRA.vertices, TETRA.faces, None, TETRA.vertices.copy())
+    assert vertex_colors(probe, mesh).shape == (4, 3) and probe.seen == {"meta"}

@@ -365,3 +365,10 @@ def check_partition(model: RadianceModel) -> None:
         flat = [n for names_ in lists for n in names_]
         if sorted(flat) != sorted(names):
             raise AssertionError(f"{type(model).__name__}.{what} does not partition the parameters: {flat} vs {names}")
+
+
+def module_device(module: nn.Module) -> torch.device:
+    """The device of ``module``'s first parameter (or buffer); the CPU for a module that has neither."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")

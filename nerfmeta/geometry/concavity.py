@@ -140,7 +140,8 @@ def surface_offsets(model: RadianceModel, scene: Any, gt: SurfaceSamples, *, n_p
     outward = norm.apply_points(points + HIDDEN_MARGIN * diagonal * normals).float()
     in_hull = in_training_hull(scene, outward)
     loaded = norm.apply_points(points).to(scene.bounds.dtype)
+    sdf = surface_function(model, scene.bounds).values  # the SDF on the model's device, values back on the CPU
     with torch.no_grad():
-        offsets = torch.cat([model.sdf_world(p) for p in loaded.split(65536)]).double() / float(norm.scale)
+        offsets = torch.cat([sdf(p) for p in loaded.split(65536)]).double() / float(norm.scale)
     figures = offset_figures(offsets, {"on_hull": ~in_hull, "hidden": in_hull}, diagonal)
     return {name: asdict(f) for name, f in figures.items()}

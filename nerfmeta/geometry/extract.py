@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from nerfmeta.errors import ConfigError
-from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fields.base import RadianceModel, module_device
 from nerfmeta.geometry.mesh import Mesh
 
 DENSITY_LENGTH = 0.01
@@ -28,7 +28,9 @@ DENSITY_LENGTH = 0.01
 
 @dataclass(frozen=True)
 class Surface:
-    """What to mesh: ``values(points (N, 3)) -> (N,)`` at world points, its ``level``, and whether inside is above it."""
+    """What to mesh: ``values(points (N, 3)) -> (N,)`` at world points, its ``level``, and whether inside is above it.
+
+    ``values`` takes points on any device and returns its values on the CPU (the field runs on its own device)."""
 
     values: Callable[[torch.Tensor], torch.Tensor]
     level: float
@@ -38,11 +40,12 @@ class Surface:
 
 def surface_function(model: RadianceModel, box: torch.Tensor, level: float | None = None) -> Surface:
     """The surface of ``model``: its SDF's zero set, or a density threshold (see the module docstring)."""
+    device = module_device(model)
     if hasattr(model, "sdf_world"):
-        return Surface(model.sdf_world, 0.0 if level is None else level, False, "sdf")
+        return Surface(lambda p: model.sdf_world(p.to(device)).cpu(), 0.0 if level is None else level, False, "sdf")
     diagonal = float((box[1] - box[0]).norm())
     threshold = math.log(2.0) / (DENSITY_LENGTH * diagonal) if level is None else level
-    return Surface(lambda p: model.get_density(p)[0], threshold, True, "density")
+    return Surface(lambda p: model.get_density(p.to(device))[0].cpu(), threshold, True, "density")
 
 
 def grid_values(fn: Callable[[torch.Tensor], torch.Tensor], box: torch.Tensor, resolution: int, chunk: int = 65536) -> np.ndarray:
@@ -78,16 +81,17 @@ def marching_cubes(values: np.ndarray, box: np.ndarray, level: float, inside_abo
 
 
 def vertex_colors(model: RadianceModel, mesh: Mesh, chunk: int = 16384) -> np.ndarray:
-    """(V, 3) uint8 colour of the field at every vertex, seen along ``-normal``."""
+    """(V, 3) uint8 colour of the field at every vertex, seen along ``-normal`` (the field runs on its own device)."""
+    device = module_device(model)
     out = []
     for start in range(0, len(mesh.vertices), chunk):
-        p = torch.as_tensor(mesh.vertices[start:start + chunk], dtype=torch.float32)
-        n = torch.as_tensor(mesh.normals[start:start + chunk], dtype=torch.float32)
+        p = torch.as_tensor(mesh.vertices[start:start + chunk], dtype=torch.float32, device=device)
+        n = torch.as_tensor(mesh.normals[start:start + chunk], dtype=torch.float32, device=device)
         dirs = -torch.nn.functional.normalize(n, dim=-1)
         with torch.no_grad():
             _, embedding = model.get_density(p)
-            rgb = model.get_outputs(embedding, None, dirs, torch.arange(p.shape[0]))
-        out.append(rgb.clamp(0, 1).numpy())
+            rgb = model.get_outputs(embedding, None, dirs, torch.arange(p.shape[0], device=device))
+        out.append(rgb.clamp(0, 1).cpu().numpy())
     return (np.concatenate(out) * 255.0 + 0.5).astype(np.uint8) if out else np.zeros((0, 3), np.uint8)
 
 
