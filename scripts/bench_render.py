@@ -9,7 +9,7 @@ second of every view, their median, the test PSNR and the samples evaluated per 
 Usage::
 
     .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X]
-        [--orbit N --out DIR] [--weights]
+        [--orbit N --out DIR] [--weights] [--device DEV]
 
 Renders use torch's thread count (one worker thread per torch thread on a CPU, see
 :func:`nerfmeta.fit.evaluate.render_rays`); ``OMP_NUM_THREADS=1`` measures one core, as sessions 5-8 did.
@@ -37,9 +37,9 @@ from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.restore import load_fitted_run  # noqa: E402
 
 
-def load_run(folder: Path):
-    """The run's config, scene and trained model (on the CPU)."""
-    fitted = load_fitted_run(folder, "cpu")
+def load_run(folder: Path, device: str = "cpu"):
+    """The run's config, scene and trained model (on ``device``)."""
+    fitted = load_fitted_run(folder, device)
     return fitted.config, fitted.scene, fitted.model
 
 
@@ -74,13 +74,13 @@ def write_orbit(model, scene, background: torch.Tensor, frames: int, folder: Pat
 
 
 @torch.no_grad()
-def weight_spread(model, scene, view: int, chunk: int) -> str:
+def weight_spread(model, scene, view: int, chunk: int, device: str = "cpu") -> str:
     """One line: the share of the samples of ``view``'s pixel rays by alpha and by compositing weight, and the
     mean transmittance left behind the last sample (a haze leaves much, an opaque scene little)."""
     from nerfmeta.fit.evaluate import view_rays
     from nerfmeta.render.volume import alpha_from_tau, packed_weights
 
-    rays = view_rays(scene, view, "cpu")
+    rays = view_rays(scene, view, device)
     alphas, weights, finals = [], [], []
     for start in range(0, len(rays), chunk):
         batch = rays[start : start + chunk]
@@ -108,15 +108,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="folder for the orbit frames (PNG)")
     parser.add_argument("--weights", action="store_true",
                         help="also print the spread of the first test view's sample alphas and weights")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     args = parser.parse_args(argv)
-    config, scene, model = load_run(args.run)
+    config, scene, model = load_run(args.run, args.device)
     if args.stop_eps is not None:
         model.config = dataclasses.replace(model.config, render_stop_eps=args.stop_eps)
     if args.orbit:
-        write_orbit(model, scene, torch.tensor(config.background, dtype=torch.float32), args.orbit, args.out)
+        write_orbit(model, scene, torch.tensor(config.background, dtype=torch.float32, device=args.device), args.orbit, args.out)
     views = scene.split_indices("test")
     views = views[: args.views] if args.views else views
-    background = torch.tensor(config.background, dtype=torch.float32)
+    background = torch.tensor(config.background, dtype=torch.float32, device=args.device)
     chunk = args.chunk or config.fit.chunk_rays
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             evaluate_views(model, scene, [views[0]], background, with_ssim=False, chunk=chunk)
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
     if args.weights:
-        print(weight_spread(model, scene, int(views[0]), chunk))
+        print(weight_spread(model, scene, int(views[0]), chunk, args.device))
     rates, psnrs, spr = [], [], []
     for view in views:
         start = time.perf_counter()
