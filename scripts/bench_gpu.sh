@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # CUDA check and GPU figures for a lent GPU machine (BENCHMARKS.md, "On a GPU").
 #
-# Two steps, because the GPU machine reaches neither ../shared nor the package index:
-#   here:      bash scripts/bench_gpu.sh prepare .gpudata     (beer, lego at 100x100, a 128 px mug; ~8 MB)
+# Two steps from the repository root, because the GPU machine reaches neither ../shared nor the package index:
+#   here:      bash scripts/bench_gpu.sh prepare .gpudata     (beer, lego at 100x100, a 128 px mug; ~8 MB;
+#              list /.gpudata/ in .git/info/exclude and carry it to the GPU machine)
 #   there:     bash scripts/bench_gpu.sh run .gpudata OUT [SECONDS]
 # 'run' installs nerfmeta into the machine's Python (no dependencies: torch, torchvision, numpy, imageio,
 # matplotlib, safetensors, tqdm, scipy and scikit-image are expected there; LPIPS is reported as
