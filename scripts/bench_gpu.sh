@@ -13,7 +13,7 @@
 #      --init auto fit with --compare scratch) and says which ones failed;
 #   2. fits beer (--downscale 4, 120 s) on cuda and times its test renders (scripts/bench_render.py);
 #   3. fits lego at 100x100 with the default route and with the scratch grid (SECONDS each, default 30);
-#   4. fits the 128 px mug's surface (the 10-minute recipe of BENCHMARKS #19, 512 rays a step, for $MUG_SECONDS,
+#   4. fits the 128 px mug's surface (the README's concave-object recipe, 512 rays a step, for $MUG_SECONDS,
 #      default 300 s: more steps than the CPU's 10 minutes give) and scores it.
 # Every step's exit status and wall time go to OUT/log.txt; the runs' summaries to OUT/summaries.json.
 set -u
@@ -116,7 +116,8 @@ run() {
     local mug_seconds=${MUG_SECONDS:-300}
     step mug_sdf $((mug_seconds + 120)) $nm fit "$data/col31/mug/mug_000" --out "$work/mug" --init scratch --backbone sdf \
         --time-budget "$mug_seconds" --iters 1000000 --batch-rays 512 --eval-every 0 --checkpoint-every 0 --eval-views 8 --renders 2 \
-        --set view_dependent=false --set init_variance=0.1 --set variance_lr=1e-2 --set color_grid=64 $gpu
+        --set view_dependent=false --set init_variance=0.1 --set variance_lr=1e-2 --set color_grid=64 \
+        --set eikonal_start_weight=0.001 --set "eikonal_ramp=[3500,5000]" --set occupancy_margin=1 $gpu
     step mug_geometry 180 $nm eval-geometry "$work/mug" --gt "$data/col31/mug/mug_000" --resolution 256 \
         --json-out "$out/mug_geometry.json"
     fi
