@@ -34,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nerfmeta.geometry.extract import surface_function  # noqa: E402
 from nerfmeta.geometry.load import load_run_model  # noqa: E402
 from nerfmeta.geometry.truth import sample_sdf_surface, scene_sdf_of  # noqa: E402
 
@@ -100,12 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{lo:.1f}-{min(lo + 0.2, 1.0):.1f}: median {np.median(views[inner & (height >= lo) & (height < lo + 0.2)]):.0f}" for lo in BANDS))
     for run in args.runs:
         model, scene = load_run_model(run)
-        ends = scene.normalization.apply_points(torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
-        box_per_unit = float((model.to_box(ends[1:]) - model.to_box(ends[:1])).norm())
+        fitted = surface_function(model, scene.bounds).values  # the SDF in the loaded frame, on the run's device
         with torch.no_grad():
             loaded = scene.normalization.apply_points(torch.as_tensor(pts, dtype=torch.float32))
-            f = torch.cat([model.evaluate(model.to_box(c)).sdf.reshape(-1) for c in loaded.split(8192)]).double().numpy()
-        pct = 100 * f / box_per_unit / diag
+            f = torch.cat([fitted(c) for c in loaded.split(8192)]).double().numpy() / float(scene.normalization.scale)
+        pct = 100 * f / diag
         bands = ", ".join(f"{lo:.1f}-{min(lo + 0.2, 1.0):.1f}: {pct[inner & (height >= lo) & (height < lo + 0.2)].mean():+.2f}" for lo in BANDS)
         print(f"  {run}: fitted SDF on the true inner wall {pct[inner].mean():+.2f} %, outer {pct[outer].mean():+.2f} % "
               f"({bands})")
