@@ -33,6 +33,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nerfmeta.errors import ConfigError  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.restore import load_fitted_run  # noqa: E402
 
@@ -110,7 +111,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="also print the spread of the first test view's sample alphas and weights")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     args = parser.parse_args(argv)
-    config, scene, model = load_run(args.run, args.device)
+    try:
+        config, scene, model = load_run(args.run, args.device)
+    except ConfigError as err:
+        print(f"bench_render: error: {err}", file=sys.stderr)
+        return 2
     if args.stop_eps is not None:
         model.config = dataclasses.replace(model.config, render_stop_eps=args.stop_eps)
     if args.orbit:
