@@ -29,6 +29,9 @@ from nerfmeta.cli import main
     (["--eval-ssim", "yes"], "unrecognized arguments"),
     (["--no-such-option"], "unrecognized arguments: --no-such-option (see 'nerfmeta fit --help')"),
     (["--itres", "3"], "unrecognized arguments: --itres 3; did you mean '--iters'?"),
+    (["--preset", "concave", "--backbone", "grid"], "--preset concave is a recipe for --backbone sdf, not --backbone grid"),
+    (["--preset", "convex"], "--preset 'convex': unknown preset; choose one of concave"),
+    (["--preset", "concave", "--set", "eikonal_ramp=[5000,3500]"], "sdf config eikonal_ramp=(5000, 3500) is not allowed"),
 ])
 def test_bad_fit_options_one_line_exit_2_nothing_written(tiny_scene, tmp_path, capsys, args, needle):
     out = tmp_path / "run"

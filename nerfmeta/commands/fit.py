@@ -23,6 +23,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig, StepRecord
 from nerfmeta.fit.run import RunConfig, default_backbone, run_fit
+from nerfmeta.presets import PRESETS, Preset, describe, get_preset, preset_backbone
 
 FREEZE_HELP = (
     "Layers are ordered input to output. nerf: trunk.0..trunk.{depth-1}, density, "
@@ -87,6 +88,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    "scratch = the voxel grid from scratch with its tuned defaults (the best scratch fit), given the routed "
                    "fit's --time-budget or else its whole wall-clock time; scratch-nerf = the NeRF MLP from scratch with "
                    "the routed fit's settings; e.g. --compare scratch,scratch-nerf")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="a named recipe of backbone and fit settings, filled in under the options given (--set and the fit "
+                   "options win over it); its values are saved in config.json like any other: "
+                   + "; ".join(f"{describe(name, preset)} ({preset.about})" for name, preset in PRESETS.items()))
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a backbone config field, e.g. --set num_voxels=512000 (repeatable; parsed by the field's "
                    "type and checked like the options; the fields are listed below)")
@@ -109,13 +114,31 @@ def parse_overrides(items: list[str], backbone: str) -> dict[str, Any]:
     return options.parse_overrides(items, BACKBONES[backbone][0])
 
 
-def fit_config_from(args: argparse.Namespace, zoo_fit: dict | None) -> FitConfig:
-    """The :class:`FitConfig` of the options given, the zoo's :data:`ZOO_FIT_FIELDS` where not given, else the defaults."""
+def fit_config_from(args: argparse.Namespace, zoo_fit: dict | None, preset: Preset | None = None) -> FitConfig:
+    """The :class:`FitConfig` of the options given, the zoo's :data:`ZOO_FIT_FIELDS` where not given, then the preset's
+    fit values where neither gives one, else the defaults."""
     values = options.given_values(args, FitConfig)
     for name in ZOO_FIT_FIELDS:
         if name not in values and zoo_fit and name in zoo_fit:
             values[name] = zoo_fit[name]
+    for name, value in (preset.fit.items() if preset else ()):
+        values.setdefault(name, value)
     return options.build_config(FitConfig, values)
+
+
+def preset_from(args: argparse.Namespace) -> Preset | None:
+    """The ``--preset`` given (checked against ``--backbone``, which it then sets), or None; says what it sets."""
+    if args.preset is None:
+        return None
+    preset = get_preset(args.preset)
+    args.backbone = preset_backbone(args.preset, preset, args.backbone)
+    print(f"{describe(args.preset, preset)} (options given win)", flush=True)
+    return preset
+
+
+def model_overrides(args: argparse.Namespace, backbone: str, preset: Preset | None) -> dict[str, Any]:
+    """The backbone config overrides: the preset's values, then ``--set``'s over them."""
+    return {**(preset.model if preset else {}), **parse_overrides(args.set, backbone)}
 
 
 def run_config_from(args: argparse.Namespace, **fixed: Any) -> RunConfig:
@@ -176,9 +199,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--compare needs --init auto (the routed fit is what a baseline is compared with)")
     if args.zoo is not None:
         raise ConfigError("--zoo is used by --init auto only")
-    fit_config = fit_config_from(args, None)
+    preset = preset_from(args)
+    fit_config = fit_config_from(args, None, preset)
     backbone = args.backbone or default_backbone(init)
-    config = run_config_from(args, backbone=backbone, model=parse_overrides(args.set, backbone), fit=fit_config, init=init,
+    config = run_config_from(args, backbone=backbone, model=model_overrides(args, backbone, preset), fit=fit_config, init=init,
                              freeze=args.freeze or 0)
     bar = ProgressBar(fit_config)
     try:
@@ -201,6 +225,7 @@ def run_auto(args: argparse.Namespace) -> int:
     from nerfmeta.zoo import open_zoo
 
     zoo = open_zoo(args.zoo)
+    preset = preset_from(args)
     backbone = args.backbone or DEFAULT_BACKBONE
     priors = zoo if zoo is not None and zoo.backbone == backbone else None  # the zoo's settings go with its priors
     if priors is None and args.freeze:
@@ -208,8 +233,8 @@ def run_auto(args: argparse.Namespace) -> int:
         raise ConfigError(f"--freeze {args.freeze}: {where}, so --init auto fits the {backbone} from scratch and has no learned "
                           f"layers to keep; it needs --init category:DIR or meta:DIR"
                           + ("" if zoo is None else f" (or --backbone {zoo.backbone})"))
-    fit_config = fit_config_from(args, priors.fit if priors else None)
-    model = parse_overrides(args.set, backbone)
+    fit_config = fit_config_from(args, priors.fit if priors else None, preset)
+    model = model_overrides(args, backbone, preset)
     if priors is not None:
         model = {**priors.fit.get("model", {}), **model}
     compare = tuple(name for name in args.compare.split(",") if name)
