@@ -114,10 +114,8 @@ run() {
     # 4. the mug's surface with more compute than the CPU's 10 minutes give
     if [[ $parts == *4* ]]; then
     local mug_seconds=${MUG_SECONDS:-300}
-    step mug_sdf $((mug_seconds + 120)) $nm fit "$data/col31/mug/mug_000" --out "$work/mug" --init scratch --backbone sdf \
-        --time-budget "$mug_seconds" --iters 1000000 --batch-rays 512 --eval-every 0 --checkpoint-every 0 --eval-views 8 --renders 2 \
-        --set view_dependent=false --set init_variance=0.1 --set variance_lr=1e-2 --set color_grid=64 \
-        --set eikonal_start_weight=0.001 --set "eikonal_ramp=[3500,5000]" --set occupancy_margin=1 $gpu
+    step mug_sdf $((mug_seconds + 120)) $nm fit "$data/col31/mug/mug_000" --out "$work/mug" --init scratch --preset concave \
+        --time-budget "$mug_seconds" --iters 1000000 --eval-every 0 --checkpoint-every 0 --eval-views 8 --renders 2 $gpu
     step mug_geometry 180 $nm eval-geometry "$work/mug" --gt "$data/col31/mug/mug_000" --resolution 256 \
         --json-out "$out/mug_geometry.json"
     fi
