@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfmeta.geometry.metrics import compare_surfaces, sampling_floor
+from nerfmeta.geometry.metrics import compare_surfaces, nearest, sampling_floor
 from nerfmeta.geometry.truth import project_to_zero_set, sample_sdf_surface
 
 
@@ -14,6 +14,18 @@ def sphere_points(n: int, r: float, seed: int = 0) -> tuple[np.ndarray, np.ndarr
     d = np.random.default_rng(seed).normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return r * d, d
+
+
+def test_nearest_equals_brute_force_including_a_query_equidistant_from_a_ring():
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(300, 3)), rng.normal(size=(500, 3))
+    dist, idx = nearest(a, b)
+    full = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    assert np.array_equal(idx, full.argmin(1)) and np.allclose(dist, full.min(1), rtol=0, atol=1e-12)
+    angle = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    ring = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], 1)  # every point 1 from the centre
+    dist, idx = nearest(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]]), ring)
+    assert np.allclose(dist, [1.0, np.sqrt(1.25)], rtol=0, atol=1e-12) and ((idx >= 0) & (idx < len(ring))).all()
 
 
 def test_identical_point_sets_give_zero():
