@@ -1,6 +1,6 @@
 """Where a fit step's time goes: the same fit as a finished run, timed by phase over a window of steps.
 
-Refits the scene of ``RUN`` with its saved ``config.json`` (optionally changed by ``--set KEY=VALUE``, JSON values, as
+Refits the scene of ``RUN`` with its saved ``config.json`` (optionally changed by ``--set KEY=VALUE``, parsed and checked as
 ``nerfmeta fit --set``) into the new folder ``--out``, without its time budget: ``--warm`` steps untimed, then
 ``--steps`` steps timed. Each phase is the wall time spent in one function, summed over the window and divided by its
 steps; phases nest (``forward`` holds ``sample`` and, for an SDF, ``evaluate`` and ``colour``), so they do not add up to
@@ -32,6 +32,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from nerfmeta.commands.fit import parse_overrides  # noqa: E402
 from nerfmeta.errors import NerfmetaError  # noqa: E402
 from nerfmeta.fields.registry import model_class  # noqa: E402
 from nerfmeta.fit.run import RunConfig, run_fit  # noqa: E402
@@ -66,20 +67,6 @@ class PhaseTimer:
         setattr(owner, name, timed)
 
 
-def parse_sets(pairs: list[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` pairs with JSON values (a bare word is a string), as ``nerfmeta fit --set``."""
-    out: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key:
-            raise SystemExit(f"error: --set {pair!r}: expected KEY=VALUE")
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", help="a finished fit run (its config.json is refitted)")
@@ -97,10 +84,14 @@ def main() -> int:
     except (OSError, ValueError, TypeError, NerfmetaError) as exc:
         print(f"error: {config_path}: not a fit run's config ({exc})", file=sys.stderr)
         return 2
+    try:
+        changes = parse_overrides(args.set, config.backbone)
+    except NerfmetaError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     fit = dataclasses.replace(config.fit, time_budget_s=None, iters=args.warm + args.steps + 1, eval_views=1,
                               eval_every=0, checkpoint_every=0)
-    config = dataclasses.replace(config, model={**config.model, **parse_sets(args.set)}, fit=fit, renders=0,
-                                 snapshot_iters=())
+    config = dataclasses.replace(config, model={**config.model, **changes}, fit=fit, renders=0, snapshot_iters=())
 
     timer = PhaseTimer()
     backbone_class = model_class(config.backbone)
@@ -129,7 +120,7 @@ def main() -> int:
     per_step = {phase: round(1000.0 * s / args.steps, 2) for phase, s in sorted(timer.seconds.items())}
     print(json.dumps({"run": args.run, "backbone": config.backbone, "threads": torch.get_num_threads(),
                       "warm": args.warm, "steps": args.steps, "step_ms": round(1000.0 * window["seconds"] / args.steps, 2),
-                      "phase_ms": per_step, "set": parse_sets(args.set)}))
+                      "phase_ms": per_step, "set": changes}))
     return 0
 
 
