@@ -82,6 +82,7 @@ def describe(name: str, preset: Preset) -> str:
             return "[" + ",".join(str(v) for v in value) + "]"
         return f"{value:g}" if isinstance(value, float) else str(value)
 
-    fit = " ".join(f"--{key.replace('_', '-')} {show(value)}" for key, value in preset.fit.items())
-    model = " ".join(f"--set {key}={show(value)}" for key, value in preset.model.items())
-    return f"--preset {name}: --backbone {preset.backbone} {fit} {model}".replace("  ", " ").strip()
+    options = [f"--backbone {preset.backbone}"]
+    options += [f"--{key.replace('_', '-')} {show(value)}" for key, value in preset.fit.items()]
+    options += [f"--set {key}={show(value)}" for key, value in preset.model.items()]
+    return f"--preset {name}: " + " ".join(options)
