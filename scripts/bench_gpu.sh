@@ -16,6 +16,7 @@
 #   4. fits the 128 px mug's surface (the README's concave-object recipe, 512 rays a step, for $MUG_SECONDS,
 #      default 300 s: more steps than the CPU's 10 minutes give) and scores it.
 # Every step's exit status and wall time go to OUT/log.txt; the runs' summaries to OUT/summaries.json.
+# A table of recipe variants x seeds of the mug's surface, all at once on the GPU: scripts/bench_gpu_recipes.sh.
 set -u
 
 prepare() {
