@@ -31,18 +31,18 @@ def test_every_preset_builds_its_backbone_and_fit_configs_and_changes_only_named
 
 
 def test_the_concave_preset_is_the_recipe_the_benchmarks_measured():
-    """The settings of BENCHMARKS.md's 10-minute mug fits (sections 9-15), every one of them: leaving out three of them
+    """The settings of BENCHMARKS.md's 10-minute mug fits (sections 9-16), every one of them: leaving out three of them
     is what made session 16's cups stay closed."""
     preset = get_preset("concave")
-    assert preset.backbone == "sdf" and dict(preset.fit) == {"batch_rays": 512}
+    assert preset.backbone == "sdf" and dict(preset.fit) == {"batch_rays": 512, "lr_decay": 0.3}
     assert dict(preset.model) == {"view_dependent": False, "init_variance": 0.1, "variance_lr": 1e-2, "color_grid": 64,
                                   "eikonal_start_weight": 1e-3, "eikonal_ramp": (3500, 5000), "occupancy_margin": 1.0}
 
 
 def test_describe_spells_the_options_a_user_would_type_and_the_readme_shows_them():
     line = describe("concave", get_preset("concave"))
-    assert line == ("--preset concave: --backbone sdf --batch-rays 512 --set view_dependent=false --set init_variance=0.1 "
-                    "--set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
+    assert line == ("--preset concave: --backbone sdf --batch-rays 512 --lr-decay 0.3 --set view_dependent=false "
+                    "--set init_variance=0.1 --set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
                     "--set eikonal_ramp=[3500,5000] --set occupancy_margin=1")
     readme = " ".join(README.read_text().split())
     assert "--preset concave" in readme
@@ -65,7 +65,7 @@ def test_fit_with_a_preset_saves_its_values_under_the_options_given(tiny_scene, 
     assert code == 0
     assert capsys.readouterr().out.startswith(describe("concave", get_preset("concave")))
     config = json.loads((out / "config.json").read_text())
-    assert config["backbone"] == "sdf" and config["fit"]["batch_rays"] == 512
+    assert config["backbone"] == "sdf" and config["fit"]["batch_rays"] == 512 and config["fit"]["lr_decay"] == 0.3
     model = config["model"]
     assert model["eikonal_ramp"] == [3500, 5000] and model["eikonal_start_weight"] == 0.001
     assert model["view_dependent"] is False and model["occupancy_margin"] == 1.0
@@ -73,8 +73,9 @@ def test_fit_with_a_preset_saves_its_values_under_the_options_given(tiny_scene, 
 
     again = tmp_path / "again"
     assert main(["fit", str(tiny_scene), "--out", str(again), "--init", "scratch", "--preset", "concave", "--iters", "2",
-                 "--batch-rays", "32", "--eval-views", "1", "--renders", "0", *TINY_SDF]) == 0
-    assert json.loads((again / "config.json").read_text())["fit"]["batch_rays"] == 32  # an option given wins
+                 "--batch-rays", "32", "--lr-decay", "0.1", "--eval-views", "1", "--renders", "0", *TINY_SDF]) == 0
+    fit = json.loads((again / "config.json").read_text())["fit"]
+    assert fit["batch_rays"] == 32 and fit["lr_decay"] == 0.1  # an option given wins, even one that repeats a default
 
 
 def test_the_readme_ramp_in_fractions_of_the_fit_is_a_valid_change_of_the_concave_preset():
