@@ -14,7 +14,7 @@ what it measured.
 
 Usage::
 
-    .venv/bin/python scripts/probe_carved_start.py DENSITY_RUN SCENE [--iters 500] [--truth] [--colour-first N] [--set KEY=VALUE ...]
+    .venv/bin/python scripts/probe_carved_start.py DENSITY_RUN SCENE [--iters 500] [--truth] [--colour-first N] [--set KEY=VALUE ...] [--colour-normal grad|detached|zero]
 """
 
 from __future__ import annotations
@@ -64,6 +64,18 @@ def level_set_target(density, box: torch.Tensor, resolution: int):
     return lambda points: interp_cf(lattice[None], points, box)[:, 0]
 
 
+def cut_colour_normal(model, mode: str) -> None:
+    """Make ``model``'s colour network see the SDF gradient ``detached`` (no photometric gradient reaches the geometry
+    through the normal) or as ``zero`` (no normal at all); the eikonal term keeps the true gradient."""
+    original = model.get_outputs
+
+    def get_outputs(embedding, sel, directions, ray_idx):
+        grad = embedding.grad.detach() if mode == "detached" else torch.zeros_like(embedding.grad)
+        return original(dataclasses.replace(embedding, grad=grad), sel, directions, ray_idx)
+
+    model.get_outputs = get_outputs
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("density_run", help="a fit run of a density backbone (e.g. --backbone grid) on SCENE")
@@ -75,6 +87,9 @@ def main() -> int:
     ap.add_argument("--resolution", type=int, default=96)
     ap.add_argument("--truth", action="store_true", help="regress to the exact SDF instead of the density's level set")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="SDF config fields over the recipe")
+    ap.add_argument("--colour-normal", choices=("grad", "detached", "zero"), default="grad",
+                    help="the normal the colour network sees: the SDF's gradient (the field's own), the same with no "
+                         "gradient back into the geometry, or none (zeros): does shading move the surface?")
     args = ap.parse_args()
 
     density, scene = load_run_model(args.density_run)
@@ -91,6 +106,8 @@ def main() -> int:
         return box[0] + (box[1] - box[0]) * torch.rand(n, 3, generator=gen)
 
     model = build_model("sdf", build_config(SdfConfig, {**RECIPE, **parse_overrides(args.set, SdfConfig)}), box, seed=0)
+    if args.colour_normal != "grad":
+        cut_colour_normal(model, args.colour_normal)
     geometry = [p for n, p in model.named_parameters() if n.startswith(("sdf.", "encoder."))]
     opt = torch.optim.Adam(geometry, lr=1e-3)
     gen = torch.Generator().manual_seed(0)
