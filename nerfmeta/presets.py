@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Collection, Mapping
 
 from nerfmeta.errors import ConfigError
 
@@ -76,8 +76,12 @@ def preset_backbone(name: str, preset: Preset, backbone: str | None) -> str:
     return preset.backbone
 
 
-def describe(name: str, preset: Preset) -> str:
-    """What ``preset`` sets, as the options a user would type (for the fit's first printed line and the help)."""
+def describe(name: str, preset: Preset, overridden: Collection[str] = ()) -> str:
+    """What ``preset`` sets, as the options a user would type (for the fit's first printed line and the help).
+
+    ``overridden``: the preset's keys (fit fields and ``--set`` keys) the options given replace; they are left out of
+    the list and named at its end, so the line never shows a value the fit does not use.
+    """
     def show(value: Any) -> str:
         if isinstance(value, bool):
             return str(value).lower()
@@ -86,6 +90,8 @@ def describe(name: str, preset: Preset) -> str:
         return f"{value:g}" if isinstance(value, float) else str(value)
 
     options = [f"--backbone {preset.backbone}"]
-    options += [f"--{key.replace('_', '-')} {show(value)}" for key, value in preset.fit.items()]
-    options += [f"--set {key}={show(value)}" for key, value in preset.model.items()]
-    return f"--preset {name}: " + " ".join(options)
+    options += [f"--{key.replace('_', '-')} {show(value)}" for key, value in preset.fit.items() if key not in overridden]
+    options += [f"--set {key}={show(value)}" for key, value in preset.model.items() if key not in overridden]
+    replaced = [f"--{key.replace('_', '-')}" for key in preset.fit if key in overridden]
+    replaced += [f"--set {key}" for key in preset.model if key in overridden]
+    return f"--preset {name}: " + " ".join(options) + (f" ({', '.join(replaced)}: the options given)" if replaced else "")

@@ -44,6 +44,10 @@ def test_describe_spells_the_options_a_user_would_type_and_the_readme_shows_them
     assert line == ("--preset concave: --backbone sdf --batch-rays 512 --lr-decay 0.3 --set view_dependent=false "
                     "--set init_variance=0.1 --set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
                     "--set eikonal_ramp=[3500,5000] --set occupancy_margin=1")
+    overridden = describe("concave", get_preset("concave"), {"lr_decay", "occupancy_margin", "not_in_the_preset"})
+    assert overridden == ("--preset concave: --backbone sdf --batch-rays 512 --set view_dependent=false --set init_variance=0.1 "
+                          "--set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
+                          "--set eikonal_ramp=[3500,5000] (--lr-decay, --set occupancy_margin: the options given)")
     readme = " ".join(README.read_text().split())
     assert "--preset concave" in readme
     assert line.split(": ", 1)[1] in readme  # the README spells out what the preset sets
@@ -63,7 +67,9 @@ def test_fit_with_a_preset_saves_its_values_under_the_options_given(tiny_scene, 
     code = main(["fit", str(tiny_scene), "--out", str(out), "--init", "scratch", "--preset", "concave", "--iters", "3",
                  "--eval-views", "1", "--renders", "0", *TINY_SDF])
     assert code == 0
-    assert capsys.readouterr().out.startswith(describe("concave", get_preset("concave")))
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first == describe("concave", get_preset("concave"), {"color_grid", "width", "depth", "n_samples"})
+    assert "color_grid=" not in first and first.endswith("(--set color_grid: the options given)")  # never a value not used
     config = json.loads((out / "config.json").read_text())
     assert config["backbone"] == "sdf" and config["fit"]["batch_rays"] == 512 and config["fit"]["lr_decay"] == 0.3
     model = config["model"]

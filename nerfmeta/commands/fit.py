@@ -132,7 +132,8 @@ def preset_from(args: argparse.Namespace) -> Preset | None:
         return None
     preset = get_preset(args.preset)
     args.backbone = preset_backbone(args.preset, preset, args.backbone)
-    print(f"{describe(args.preset, preset)} (options given win)", flush=True)
+    given = {*options.given_values(args, FitConfig), *(item.split("=", 1)[0].strip() for item in args.set)}
+    print(describe(args.preset, preset, given), flush=True)
     return preset
 
 
