@@ -177,6 +177,9 @@ class TrainConfig:
     """Local file of pretrained backbone weights (a torchvision state dict; the fc layer is skipped)."""
     device: str = "cpu"
     """Torch device to train on."""
+    outlier_exposure: float = 0.0
+    """Weight of the outlier-exposure loss: each step also trains half a batch of chimeras (two known categories'
+    views joined along a random cut, :func:`classifier.data.chimera_views`) towards a uniform softmax; 0: off."""
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     """Training augmentations."""
 
@@ -196,6 +199,8 @@ class TrainConfig:
                 raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise ConfigError(f"--lr must be a positive number, got {self.lr}")
+        if not (math.isfinite(self.outlier_exposure) and self.outlier_exposure >= 0):
+            raise ConfigError(f"--outlier-exposure must be a number >= 0, got {self.outlier_exposure}")
         if not self.weight_decay >= 0:
             raise ConfigError(f"weight decay must be >= 0, got {self.weight_decay}")
         if not 0.0 <= self.warmup_fraction < 1.0:

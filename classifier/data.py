@@ -151,6 +151,64 @@ def augment_views(
     return out.clamp(0.0, 1.0)
 
 
+def chimera_partners(labels: torch.Tensor, count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Draw ``count`` pairs of view indices whose two views belong to different classes.
+
+    The first view of a pair is uniform over all views; the second is uniform over the views of a
+    class drawn uniformly among the *other* classes present in ``labels``.
+
+    Returns:
+        (first, second): two (count,) index tensors into ``labels``.
+
+    Raises:
+        ValueError: fewer than two classes in ``labels`` (no pair can mix two).
+    """
+    classes = torch.unique(labels)
+    if classes.numel() < 2:
+        raise ValueError("chimera outliers need views of at least two classes")
+    members = [torch.nonzero(labels == c).flatten() for c in classes]
+    position = {int(c): k for k, c in enumerate(classes)}
+    first = torch.randint(len(labels), (count,), generator=generator)
+    shift = torch.randint(1, classes.numel(), (count,), generator=generator)
+    second = torch.empty(count, dtype=torch.long)
+    for i in range(count):
+        pool = members[(position[int(labels[first[i]])] + int(shift[i])) % classes.numel()]
+        second[i] = pool[int(torch.randint(len(pool), (), generator=generator))]
+    return first, second
+
+
+def chimera_views(first: torch.Tensor, second: torch.Tensor, generator: torch.Generator, cut: tuple[float, float] = (0.35, 0.65)) -> torch.Tensor:
+    """Join two views along a random straight cut: one side from ``first``, the other from ``second``.
+
+    An object made of two categories' halves is an object of no category: trained towards a
+    uniform softmax (outlier exposure, Hendrycks et al. 2019, with synthesised outliers in place of an
+    auxiliary dataset, as in CutMix), it teaches the network to be unsure of shapes that only share
+    parts with the known ones. Premultiplied RGBA joins by selection, so each side keeps its exact pixels.
+
+    Args:
+        first, second: (n, 4, S, S) premultiplied RGBA views.
+        generator: draws, per pair, the cut's direction (rows or columns), its position (a fraction in
+            ``cut`` of the image) and which view lies on the low side.
+
+    Returns:
+        (n, 4, S, S) premultiplied RGBA.
+    """
+    n, _, h, w = first.shape
+    out = torch.empty_like(first)
+    for i in range(n):
+        vertical = bool(torch.rand((), generator=generator) < 0.5)
+        frac = _uniform(generator, *cut)
+        a, b = (first[i], second[i]) if torch.rand((), generator=generator) < 0.5 else (second[i], first[i])
+        out[i] = b
+        if vertical:
+            k = round(frac * w)
+            out[i, :, :, :k] = a[:, :, :k]
+        else:
+            k = round(frac * h)
+            out[i, :, :k] = a[:, :k]
+    return out
+
+
 @dataclass(frozen=True)
 class ViewSet:
     """Views of several scenes, ready for training or evaluation.

@@ -39,7 +39,7 @@ from nerfmeta.runfolder import check_target, run_folder
 
 from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFAULT_SCORE, SCALE_PRIOR_GRID, SCORES,
                                CalibrationNeeds, TrainConfig)
-from classifier.data import ViewSet, augment_views, load_view_set, normalize
+from classifier.data import ViewSet, augment_views, chimera_partners, chimera_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
 from classifier.predict import (
@@ -172,6 +172,15 @@ def _meta(config: TrainConfig, categories: tuple[str, ...], score: str = "msp", 
     )
 
 
+def uniform_cross_entropy(logits: torch.Tensor) -> torch.Tensor:
+    """Mean KL divergence from the uniform distribution over the classes to softmax(``logits``): the outlier-exposure loss.
+
+    ``logsumexp(z) - mean(z) - log C`` per row (the cross-entropy to uniform less its minimum): 0 exactly when every
+    logit of a row is equal.
+    """
+    return (torch.logsumexp(logits, -1) - logits.mean(-1)).mean() - math.log(logits.shape[-1])
+
+
 def fit_network(
     model: SceneNet,
     train: ViewSet,
@@ -219,9 +228,15 @@ def fit_network(
                 group["lr"] = config.lr * lr_factor(progress, config.warmup_fraction)
             idx = order[b * config.batch_size : (b + 1) * config.batch_size]
             rgb = augment_views(train.float_views(idx), config.augment, config.background, generator)
+            if config.outlier_exposure > 0:
+                first, second = chimera_partners(train.labels, len(idx) // 2, generator)
+                chimeras = chimera_views(train.float_views(first), train.float_views(second), generator)
+                rgb = torch.cat([rgb, augment_views(chimeras, config.augment, config.background, generator)])
             inputs = normalize(rgb, config.mean, config.std).to(device)
             _, logits = model(inputs)
-            loss = F.cross_entropy(logits, train.labels[idx].to(device))
+            loss = F.cross_entropy(logits[: len(idx)], train.labels[idx].to(device))
+            if config.outlier_exposure > 0:
+                loss = loss + config.outlier_exposure * uniform_cross_entropy(logits[len(idx):])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

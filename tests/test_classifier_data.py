@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from classifier.config import NO_AUGMENT, AugmentConfig
-from classifier.data import ViewSet, augment_views, composite, normalize, scene_premultiplied, to_input_size
+from classifier.data import (ViewSet, augment_views, chimera_partners, chimera_views, composite, normalize, scene_premultiplied,
+                             to_input_size)
 from classifier.inputs import image_premultiplied, read_scene_views
 from nerfmeta.data import load_scene
 from nerfmeta.errors import SceneError
@@ -137,3 +138,35 @@ def test_no_readable_images_is_a_one_line_scene_error(tmp_path: Path):
     (other / "readme.txt").write_text("hello")
     with pytest.raises(SceneError):
         read_scene_views(other, size=16, background=(1.0, 1.0, 1.0))
+
+
+def test_chimera_partners_always_mix_two_classes_and_are_seeded():
+    labels = torch.tensor([0, 0, 0, 1, 2, 2, 2, 2])
+    first, second = chimera_partners(labels, 200, torch.Generator().manual_seed(0))
+    assert (labels[first] != labels[second]).all()
+    assert set(labels[second].tolist()) == {0, 1, 2}  # every other class is drawn, the rare one too
+    again = chimera_partners(labels, 200, torch.Generator().manual_seed(0))
+    assert torch.equal(first, again[0]) and torch.equal(second, again[1])
+    with pytest.raises(ValueError, match="two classes"):
+        chimera_partners(torch.zeros(5, dtype=torch.long), 3, torch.Generator())
+
+
+def test_chimera_is_two_views_joined_along_one_straight_cut():
+    n, size = 64, 20
+    a = torch.rand(n, 4, size, size)
+    b = a + 2.0  # every pixel tells which view it came from
+    out = chimera_views(a, b, torch.Generator().manual_seed(1))
+    from_b = out >= 2.0
+    assert torch.equal(torch.where(from_b, out, b), b) and torch.equal(torch.where(from_b, a, out), a)
+    directions = set()
+    for m in from_b:
+        assert (m == m[:1]).all()  # the four channels agree: premultiplied colour and alpha travel together
+        m = m[0]
+        by_column = (m == m[:1]).all()  # every row the same: a vertical cut
+        line = m[0] if by_column else m[:, 0]
+        assert by_column or (m == m[:, :1]).all()
+        k = int(line.sum())
+        assert 0.35 * size - 1 <= k <= 0.65 * size + 1  # the cut lies near the middle: each side a real part
+        assert torch.equal(line, line.sort(descending=bool(line[0]))[0])  # one side, then the other
+        directions.add((bool(by_column), bool(line[0])))
+    assert len(directions) == 4  # both directions, either view on either side

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,8 @@ from classifier.data import composite, load_view_set, normalize
 from classifier.inputs import read_scene_views
 from classifier.model import build_model
 from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, WEIGHTS_FILE, classify_views, load_classifier
-from classifier.train import fewest_scenes_per_class, fit_network, lr_factor, plan_splits, select_score, train_classifier
+from classifier.train import (fewest_scenes_per_class, fit_network, lr_factor, plan_splits, select_score, train_classifier,
+                              uniform_cross_entropy)
 from nerfmeta.cli import main
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.errors import ConfigError
@@ -107,6 +109,42 @@ def test_a_few_training_steps_lower_the_loss(collection: Path):
     after = _loss(model, train, config)
     assert history["steps"] == 4 * 3 and len(history["epochs"]) == 4
     assert after < 0.5 * before, (before, after)
+
+
+def test_uniform_cross_entropy_is_the_kl_divergence_from_uniform():
+    logits = torch.randn(7, 5, dtype=torch.float64) * 3
+    log_p = logits.log_softmax(-1)
+    expected = (0.2 * (torch.log(torch.tensor(0.2, dtype=torch.float64)) - log_p)).sum(-1).mean()
+    assert torch.allclose(uniform_cross_entropy(logits), expected)
+    assert abs(float(uniform_cross_entropy(torch.full((3, 4), 2.5)))) < 1e-6
+    assert float(uniform_cross_entropy(torch.tensor([[10.0, 0.0, 0.0]]))) > 5.0  # a confident row pays
+
+
+def test_outlier_exposure_makes_chimeras_less_confident(collection: Path):
+    coll = load_collection(collection)
+    splits = plan_splits(coll, ())
+    train = load_view_set(coll, splits.train, splits.categories, size=16, background=TINY.background)
+    g = torch.Generator().manual_seed(5)
+    from classifier.data import chimera_partners, chimera_views
+    first, second = chimera_partners(train.labels, 32, g)
+    chimeras = chimera_views(train.float_views(first), train.float_views(second), g)
+
+    def fit(weight: float) -> tuple[float, float]:
+        config = replace(TINY, batch_size=6, epochs=24, lr=3e-3, warmup_fraction=0.0, outlier_exposure=weight)
+        model = build_model("resnet18", 3, seed=0)
+        fit_network(model, train, train, config)
+        with torch.no_grad():
+            known = model(normalize(composite(train.float_views(slice(None)), config.background), config.mean, config.std))[1]
+            odd = model(normalize(composite(chimeras, config.background), config.mean, config.std))[1]
+        accuracy = float((known.argmax(-1) == train.labels).float().mean())
+        return accuracy, float(odd.softmax(-1).max(-1).values.mean())
+
+    (plain_accuracy, plain_msp), (oe_accuracy, oe_msp) = fit(0.0), fit(1.0)
+    assert oe_accuracy >= plain_accuracy - 0.2, (plain_accuracy, oe_accuracy)
+    assert oe_msp < plain_msp - 0.1, (plain_msp, oe_msp)
+    for bad in (-0.5, float("nan")):
+        with pytest.raises(ConfigError, match="outlier-exposure"):
+            TrainConfig(outlier_exposure=bad).validate()
 
 
 def test_train_classifier_writes_a_complete_folder_and_reloads(collection: Path, tmp_path: Path):
