@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from classifier.config import CLASS_SCORE_TRAIN_SCENES, DEFAULT_SCORE, NO_AUGMENT, SCORES, TrainConfig
-from classifier.data import composite, load_view_set, normalize
+from classifier.data import chimera_partners, chimera_views, composite, load_view_set, normalize
 from classifier.inputs import read_scene_views
 from classifier.model import build_model
 from classifier.store import CURVE_FILE, HISTORY_FILE, META_FILE, WEIGHTS_FILE, classify_views, load_classifier
@@ -125,7 +125,6 @@ def test_outlier_exposure_makes_chimeras_less_confident(collection: Path):
     splits = plan_splits(coll, ())
     train = load_view_set(coll, splits.train, splits.categories, size=16, background=TINY.background)
     g = torch.Generator().manual_seed(5)
-    from classifier.data import chimera_partners, chimera_views
     first, second = chimera_partners(train.labels, 32, g)
     chimeras = chimera_views(train.float_views(first), train.float_views(second), g)
 

@@ -132,7 +132,7 @@ def preset_from(args: argparse.Namespace) -> Preset | None:
         return None
     preset = get_preset(args.preset)
     args.backbone = preset_backbone(args.preset, preset, args.backbone)
-    given = {*options.given_values(args, FitConfig), *(item.split("=", 1)[0].strip() for item in args.set)}
+    given = {*options.given_values(args, FitConfig), *parse_overrides(args.set, args.backbone)}
     print(describe(args.preset, preset, given), flush=True)
     return preset
 
