@@ -19,16 +19,23 @@ Scores (names as in :data:`classifier.config.SCORES`):
   tightly than new ones by a margin that differs per class (measured 1.9x for cars, 3.7x for lamps,
   4.5x for tables: categories with sub-types generalise least), so the pooled distance flags new
   scenes of the broad categories; the per-class scale puts every class on the same footing.
+- ``combined``: ``energy`` plus ``class_mahalanobis``, each in units of its spread on the known validation scenes.
+- ``fused``: ``combined`` plus the same kind of distance in a frozen ImageNet network's features, in units of its
+  leave-one-out spread over every known scene (:mod:`classifier.reference`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from classifier.config import SCORES
+
+if TYPE_CHECKING:
+    from classifier.reference import ReferenceModel
 
 
 @dataclass(frozen=True)
@@ -56,6 +63,7 @@ class FeatureStats:
             their class mean (:func:`training_class_scale`): which classes are broad, read off many
             scenes; calibration scales it to the validation scenes (:func:`fit_class_scale`). None in
             classifiers saved before it existed.
+        reference: the ImageNet reference model of the ``fused`` score (:mod:`classifier.reference`), or None.
     """
 
     means: torch.Tensor
@@ -65,6 +73,7 @@ class FeatureStats:
     class_scale: torch.Tensor | None = None
     score_norm: torch.Tensor | None = None
     train_scale: torch.Tensor | None = None
+    reference: "ReferenceModel | None" = None
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:
@@ -310,14 +319,17 @@ def select_scale_prior(
     return max(k for k, v in losses.items() if v <= best + 1e-12)
 
 
-def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: FeatureStats | None) -> dict[str, float]:
+def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: FeatureStats | None,
+                 reference: torch.Tensor | None = None) -> dict[str, float]:
     """Every unknown score of one scene (the Mahalanobis ones only when features and stats are given;
-    ``class_mahalanobis`` only when the stats hold a class scale, ``combined`` only when they also hold a score norm).
+    ``class_mahalanobis`` only when the stats hold a class scale, ``combined`` only when they also hold a score norm,
+    ``fused`` only when there is ``combined``, a reference model in the stats and the scene's reference descriptors).
 
     Args:
         logits: (n_views, n_classes).
         features: (n_views, dim) penultimate features, or None.
         stats: feature statistics of the training views, or None.
+        reference: (n_views', dim') the views' ImageNet descriptors (:func:`classifier.reference.view_descriptors`), or None.
     """
     scores = {"msp": float(msp_score(logits)), "energy": float(energy_score(logits))}
     if features is not None and stats is not None:
@@ -328,6 +340,8 @@ def scene_scores(logits: torch.Tensor, features: torch.Tensor | None, stats: Fea
             if stats.score_norm is not None:
                 scores["combined"] = float(combined_score(torch.tensor(scores["energy"]), torch.tensor(scores["class_mahalanobis"]),
                                                           stats.score_norm))
+                if stats.reference is not None and reference is not None:
+                    scores["fused"] = scores["combined"] + stats.reference.z(reference)
     return scores
 
 
@@ -517,6 +531,7 @@ def decide(
     score_name: str,
     threshold: float,
     stats: FeatureStats | None = None,
+    reference: torch.Tensor | None = None,
 ) -> Prediction:
     """Scene-level prediction from per-view outputs.
 
@@ -527,13 +542,14 @@ def decide(
         score_name: one of :data:`classifier.config.SCORES`.
         threshold: scenes scoring below it are unknown.
         stats: feature statistics (needed by ``mahalanobis``).
+        reference: (n_views, dim') ImageNet descriptors of the views (needed by ``fused``).
     """
     if score_name not in SCORES:
         raise ValueError(f"unknown score {score_name!r}")
     if logits.shape[-1] != len(categories):
         raise ValueError(f"{logits.shape[-1]} logits per view for {len(categories)} categories")
     probs = scene_probabilities(logits)
-    scores = scene_scores(logits, features, stats)
+    scores = scene_scores(logits, features, stats, reference)
     if score_name not in scores:
         raise ValueError(f"score {score_name!r} needs features and feature statistics")
     best = int(probs.argmax())

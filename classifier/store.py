@@ -2,7 +2,8 @@
 
 Layout (written by ``nerfmeta classifier train``)::
 
-    DIR/model.safetensors    network weights (``net.*``) and feature statistics (``feature_stats.*``)
+    DIR/model.safetensors    network weights (``net.*``), feature statistics (``feature_stats.*``) and, with a
+                             reference network, the ImageNet reference statistics (``reference_stats.*``)
     DIR/classifier.json      categories, input size, background, normalisation, unknown score and
                              threshold, the SHA-256 of model.safetensors, training recipe, metrics
     DIR/training_curve.png   loss and validation accuracy during training
@@ -14,7 +15,9 @@ weights, tensor names and shapes) and raises :class:`ClassifierError`, one line,
 
 from __future__ import annotations
 
+import functools
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -25,11 +28,15 @@ import torch
 
 from nerfmeta.errors import NerfmetaError
 from nerfmeta.io import load_tensors, save_tensors, sha256_file, write_json
+from nerfmeta.metrics import LpipsUnavailable
 
 from classifier.config import ARCHITECTURES, SCORES, STEMS
 from classifier.data import RGB, composite, normalize
 from classifier.model import SceneNet, empty_model
 from classifier.predict import FeatureStats, Prediction, decide
+from classifier.reference import ReferenceModel, load_trunk, view_descriptors
+
+log = logging.getLogger(__name__)
 
 FORMAT = "nerfmeta-classifier"
 VERSION = 1
@@ -40,6 +47,8 @@ MAX_INPUT_SIZE = 1024
 CURVE_FILE = "training_curve.png"
 HISTORY_FILE = "history.json"
 STATS_PREFIX = "feature_stats."
+REFERENCE_PREFIX = "reference_stats."
+REFERENCE_FIELDS = ("means", "between", "within", "reference_views", "norm")
 NO_CLASSIFIER_HINT = (
     "pass --classifier DIR, a folder written by 'nerfmeta classifier train' "
     "(required until the model zoo ships a default classifier)"
@@ -132,9 +141,22 @@ def classify_views(classifier: Classifier, views: torch.Tensor) -> Prediction:
     meta = classifier.meta
     if views.dim() != 4 or views.shape[1] != 4 or tuple(views.shape[-2:]) != (meta.input_size, meta.input_size):
         raise ValueError(f"views must be (n, 4, {meta.input_size}, {meta.input_size}), got {tuple(views.shape)}")
+    reference = None
+    if meta.score == "fused":
+        try:
+            reference = view_descriptors(cached_trunk("vgg16"), views, meta.background)
+        except LpipsUnavailable as err:
+            log.warning("deciding with 'combined' instead of 'fused': %s", err)
+            classifier, meta = classifier.with_score("combined"), classifier.with_score("combined").meta
     features, logits = view_outputs(classifier.model, model_inputs(views, meta), mirror=meta.mirror_views)
-    prediction = decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats)
+    prediction = decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats, reference)
     return replace(prediction, views=int(views.shape[0]))  # the views given, mirrored ones not counted
+
+
+@functools.lru_cache(maxsize=1)
+def cached_trunk(net: str) -> torch.nn.Sequential:
+    """:func:`classifier.reference.load_trunk`, loaded once per process."""
+    return load_trunk(net)
 
 
 # --- saving ------------------------------------------------------------------------------------
@@ -151,6 +173,10 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
     for name in ("score_norm", "train_scale"):
         if getattr(stats, name) is not None:
             tensors[STATS_PREFIX + name] = getattr(stats, name)
+    if stats.reference is not None:
+        ref = stats.reference
+        values = (ref.stats.means, ref.stats.between, ref.stats.within, ref.stats.reference_views, ref.norm)
+        tensors.update({REFERENCE_PREFIX + k: v.float() for k, v in zip(REFERENCE_FIELDS, values)})
     return tensors
 
 
@@ -298,7 +324,7 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
         raise ClassifierError(f"{weights}: cannot read as safetensors ({type(err).__name__})") from None
     model = empty_model(meta.arch, len(meta.categories), stem=meta.stem)
     own = model.state_dict()
-    state = {k: v for k, v in tensors.items() if not k.startswith(STATS_PREFIX)}
+    state = {k: v for k, v in tensors.items() if not k.startswith((STATS_PREFIX, REFERENCE_PREFIX))}
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     wrong = [k for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)]
@@ -329,5 +355,18 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
         raise ClassifierError(f"{weights}: {STATS_PREFIX}score_norm must hold a mean and a positive spread of energy and class_mahalanobis")
     if (stats.score_norm is None or stats.class_scale is None) and "combined" in meta.thresholds:
         raise ClassifierError(f"{weights}: {STATS_PREFIX}score_norm is missing but classifier.json calibrates combined")
+    if any(k.startswith(REFERENCE_PREFIX) for k in tensors):
+        try:
+            means, between, within, views, norm = (tensors[REFERENCE_PREFIX + k] for k in REFERENCE_FIELDS)
+        except KeyError:
+            raise ClassifierError(f"{weights}: reference statistics incomplete (need {REFERENCE_PREFIX}"
+                                  f"{'/'.join(REFERENCE_FIELDS)})") from None
+        dim = means.shape[-1]
+        if (means.dim() != 2 or means.shape[0] != len(meta.categories) or tuple(between.shape) != (dim, dim)
+                or tuple(within.shape) != (dim, dim) or views.numel() != 1 or tuple(norm.shape) != (2,) or not float(norm[1]) > 0):
+            raise ClassifierError(f"{weights}: reference statistics have the wrong shape for {len(meta.categories)} categories")
+        stats = replace(stats, reference=ReferenceModel(FeatureStats(means, between, within, views), norm))
+    if stats.reference is None and "fused" in meta.thresholds:
+        raise ClassifierError(f"{weights}: {REFERENCE_PREFIX}* is missing but classifier.json calibrates fused")
     model.to(device).eval()
     return Classifier(meta, model, stats)

@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from nerfmeta.collection.generate import Collection, SceneRecord, load_collection
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import to_jsonable, write_json
+from nerfmeta.metrics import LpipsUnavailable
 from nerfmeta.runfolder import check_target, run_folder
 
 from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFAULT_SCORE, SCALE_PRIOR_GRID, SCORES,
@@ -42,6 +43,7 @@ from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFA
 from classifier.data import ViewSet, augment_views, chimera_partners, chimera_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
+from classifier.reference import REFERENCE_SIZE, REFERENCE_VIEWS, fit_reference, fused_threshold, load_trunk, view_descriptors
 from classifier.predict import (
     FeatureStats,
     auroc,
@@ -296,6 +298,11 @@ class CalibrationInputs:
         val: per known validation scene, (features (n_views, dim), logits (n_views, n_classes)).
         val_labels: (n_val,) class of each known validation scene.
         holdout_val: per held-out validation scene, (features, logits).
+        reference_known: per known scene (training then validation), (n_views, dim') ImageNet descriptors
+            (:mod:`classifier.reference`); None without a reference network.
+        reference_labels: (n_known,) class of each of them.
+        reference_val_index: (n_val,) row of ``reference_known`` of each known validation scene, in ``val``'s order.
+        reference_holdout_val: per held-out validation scene, its descriptors.
     """
 
     train_features: torch.Tensor
@@ -305,14 +312,27 @@ class CalibrationInputs:
     val: list[tuple[torch.Tensor, torch.Tensor]]
     val_labels: torch.Tensor
     holdout_val: list[tuple[torch.Tensor, torch.Tensor]]
+    reference_known: list[torch.Tensor] | None = None
+    reference_labels: torch.Tensor | None = None
+    reference_val_index: torch.Tensor | None = None
+    reference_holdout_val: list[torch.Tensor] | None = None
+
+
+def scene_descriptors(trunk: torch.nn.Sequential, views: ViewSet, background, per_scene: int) -> list[torch.Tensor]:
+    """Per scene of ``views``, the ImageNet descriptors of its first ``per_scene`` views (evenly spaced)."""
+    sample = views.subset(per_scene)
+    desc = view_descriptors(trunk, sample.float_views(slice(None)), background)
+    return [desc[sample.scene_index == k] for k in range(len(sample.scenes))]
 
 
 @torch.no_grad()
 def calibration_inputs(
-    model: SceneNet, train: ViewSet, val: ViewSet, holdout_val: ViewSet, config: TrainConfig, categories: tuple[str, ...]
+    model: SceneNet, train: ViewSet, val: ViewSet, holdout_val: ViewSet, config: TrainConfig, categories: tuple[str, ...],
+    trunk: torch.nn.Sequential | None = None,
 ) -> CalibrationInputs:
     """The network's outputs on the first ``config.stats_views`` views of each training scene and on every view of
-    the validation scenes (no augmentation)."""
+    the validation scenes (no augmentation); with ``trunk``, the ImageNet descriptors of :data:`REFERENCE_VIEWS` views of
+    every known scene and held-out validation scene too."""
     meta = _meta(config, categories)
     sample = train.subset(config.stats_views)
     features, logits = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta), mirror=config.mirror_views)
@@ -320,7 +340,18 @@ def calibration_inputs(
     val_out = scene_outputs(model, val, meta)
     labels = torch.tensor([int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))], dtype=torch.long)
     held = scene_outputs(model, holdout_val, meta) if len(holdout_val.scenes) else []
-    return CalibrationInputs(features, logits, sample.labels.repeat(copies), sample.scene_index.repeat(copies), val_out, labels, held)
+    reference = {}
+    if trunk is not None:
+        known = scene_descriptors(trunk, train, config.background, REFERENCE_VIEWS)
+        train_labels = [int(train.labels[train.scene_views(k)[0]]) for k in range(len(train.scenes))]
+        reference = dict(
+            reference_known=known + scene_descriptors(trunk, val, config.background, REFERENCE_VIEWS),
+            reference_labels=torch.tensor(train_labels + labels.tolist(), dtype=torch.long),
+            reference_val_index=torch.arange(len(known), len(known) + len(val_out)),
+            reference_holdout_val=scene_descriptors(trunk, holdout_val, config.background, REFERENCE_VIEWS) if held else [],
+        )
+    return CalibrationInputs(features, logits, sample.labels.repeat(copies), sample.scene_index.repeat(copies), val_out, labels, held,
+                             **reference)
 
 
 def calibrate(
@@ -330,9 +361,10 @@ def calibrate(
     holdout_val: ViewSet,
     config: TrainConfig,
     categories: tuple[str, ...],
+    trunk: torch.nn.Sequential | None = None,
 ) -> tuple[FeatureStats, dict[str, float], dict[str, Any]]:
     """:func:`calibrate_inputs` of the network's :func:`calibration_inputs`."""
-    return calibrate_inputs(calibration_inputs(model, train, val, holdout_val, config, categories), config, len(categories))
+    return calibrate_inputs(calibration_inputs(model, train, val, holdout_val, config, categories, trunk), config, len(categories))
 
 
 def calibrate_inputs(
@@ -346,7 +378,10 @@ def calibrate_inputs(
     :func:`~classifier.predict.select_scale_prior`); their own ``class_mahalanobis`` scores, for its
     threshold and validation metrics, are leave-one-out scores
     (:func:`~classifier.predict.leave_one_out_class_scores`), so they are as unbiased as a new scene's.
-    The threshold of each score is drawn by ``config.threshold_rule`` (:func:`threshold_for_rule`).
+    The threshold of each score is drawn by ``config.threshold_rule`` (:func:`threshold_for_rule`), except ``fused``'s
+    (only with reference descriptors in ``data``): :func:`~classifier.reference.fused_threshold` at
+    ``config.reference_keep_fraction``, over the validation scenes' ``combined`` and every known scene's leave-one-out
+    reference score.
 
     Returns:
         stats, thresholds (score -> threshold), metrics (``metrics["calibration"]`` says which prior
@@ -369,6 +404,15 @@ def calibrate_inputs(
     stats = replace(stats, score_norm=fit_score_norm(known["energy"], known["class_mahalanobis"]).float())
     known["combined"] = combined_score(known["energy"], known["class_mahalanobis"], stats.score_norm)
     thresholds, rule_notes = threshold_for_rule(data, stats, known, distances, config, prior)
+    held = score_table(data.holdout_val, stats) if data.holdout_val else None
+    if data.reference_known is not None:
+        reference, loo = fit_reference(data.reference_known, data.reference_labels, n_classes, config.covariance_shrinkage)
+        stats = replace(stats, reference=reference)
+        loo_z = (loo - reference.norm[0].double()) / reference.norm[1].double()
+        known["fused"] = known["combined"] + loo_z[data.reference_val_index]
+        thresholds["fused"] = fused_threshold(known["combined"], loo_z, config.reference_keep_fraction)
+        if held is not None:
+            held["fused"] = held["combined"] + torch.tensor([reference.z(d) for d in data.reference_holdout_val], dtype=torch.float64)
     correct = torch.tensor([int(scene_probabilities(z).argmax()) == c for (_, z), c in zip(data.val, labels)])
     metrics: dict[str, Any] = {
         "val_scenes": len(labels),
@@ -379,10 +423,9 @@ def calibrate_inputs(
                         "scale_prior_scenes": prior, "scale_prior_chosen_by": chosen_by, **rule_notes},
         "scores": {},
     }
-    held = score_table(data.holdout_val, stats) if data.holdout_val else None
     metrics["holdout_val_scenes"] = len(data.holdout_val)
     metrics["fewest_train_scenes"] = fewest_scenes_per_class(data.train_labels, data.train_scene_index, n_classes)
-    for name in SCORES:
+    for name in (name for name in SCORES if name in thresholds):
         flagged = known[name] < thresholds[name]
         entry = {
             "threshold": thresholds[name],
@@ -431,7 +474,8 @@ def threshold_for_rule(
         config: the recipe.
         prior: the class scale's prior, in scenes.
     """
-    return {name: calibrate_threshold(known[name], config.keep_fraction, config.threshold_rule) for name in SCORES}, {}
+    return {name: calibrate_threshold(known[name], config.keep_fraction, config.threshold_rule) for name in SCORES
+            if name in known}, {}
 
 
 def calibration_warnings(
@@ -474,8 +518,11 @@ def fewest_scenes_per_class(labels: torch.Tensor, scene_index: torch.Tensor, n_c
 
 def fallback_score(metrics: dict[str, Any]) -> str:
     """The score ``auto`` falls back to: ``class_mahalanobis`` when every known category has
-    :data:`CLASS_SCORE_TRAIN_SCENES` training scenes (``metrics["fewest_train_scenes"]``), else :data:`DEFAULT_SCORE`."""
-    return "class_mahalanobis" if metrics.get("fewest_train_scenes", 0) >= CLASS_SCORE_TRAIN_SCENES else DEFAULT_SCORE
+    :data:`CLASS_SCORE_TRAIN_SCENES` training scenes (``metrics["fewest_train_scenes"]``), else ``fused`` when it was
+    calibrated (a reference network), else :data:`DEFAULT_SCORE`."""
+    if metrics.get("fewest_train_scenes", 0) >= CLASS_SCORE_TRAIN_SCENES:
+        return "class_mahalanobis"
+    return "fused" if "fused" in metrics.get("scores", {}) else DEFAULT_SCORE
 
 
 def select_score(requested: str, metrics: dict[str, Any], min_holdout_scenes: int = CALIBRATION_NEEDS.holdout_val_scenes) -> tuple[str, str]:
@@ -549,7 +596,8 @@ def train_classifier(
     for cb in callbacks:
         cb(TrainEvent("calibrate", history["steps"], history["steps"], time_s=history["time_s"]))
     model.cpu()
-    stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories)
+    trunk, reference_note = reference_trunk(config.reference)
+    stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories, trunk)
     score, rule = select_score(config.score, metrics)
     metrics["score_selection"] = {"score": score, "rule": rule}
     count = lambda records: {c: sum(r.category == c for r in records) for c in splits.categories}  # noqa: E731
@@ -579,6 +627,7 @@ def train_classifier(
             "fresh_parameters": fresh,
             "torch_threads": torch.get_num_threads(),
         },
+        "reference": reference_note,
         "validation": metrics,
         "calibration": calibration,
     }
@@ -587,6 +636,19 @@ def train_classifier(
         write_json(run.dir / HISTORY_FILE, history)
         plot_training_curve(history, run.dir / CURVE_FILE, title=f"{config.arch}, {len(splits.categories)} categories")
     return json.loads((out / META_FILE).read_text())
+
+
+def reference_trunk(net: str) -> tuple[torch.nn.Sequential | None, dict[str, Any]]:
+    """The frozen ImageNet network of the ``fused`` score, or None (``none``, or its weights missing: warned), and the
+    note ``classifier.json["reference"]`` keeps."""
+    if net == "none":
+        return None, {"net": "none"}
+    try:
+        trunk = load_trunk(net)
+    except LpipsUnavailable as err:
+        log.warning("no fused score: %s", err)
+        return None, {"net": net, "used": False, "why": str(err)}
+    return trunk, {"net": net, "used": True, "size": REFERENCE_SIZE, "views_per_scene": REFERENCE_VIEWS}
 
 
 def check_output(out: Path, overwrite: bool) -> None:

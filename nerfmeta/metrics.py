@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "LPIPS_WEIGHTS",
     "LpipsUnavailable",
+    "load_imagenet_trunk",
     "load_lpips",
     "lpips",
     "lpips_skip_reason",
@@ -460,6 +461,44 @@ def lpips_skip_reason(height: int, width: int, net: str = "alex", folder: str | 
     return None
 
 
+def load_imagenet_trunk(net: str = "vgg", *, folder: str | os.PathLike | None = None,
+                        sha256: str | None = None) -> torch.nn.Sequential:
+    """torchvision's AlexNet / VGG16 ``features`` (the convolutional trunk) with the installed ImageNet weights.
+
+    The weights are those LPIPS uses (:data:`LPIPS_WEIGHTS`, installed at set-up from a registry package; nothing is
+    downloaded); the file's hash is checked against ``sha256`` (default: the pin). Needs torchvision, not ``lpips``.
+    The trunk is in eval mode with gradients off.
+
+    Raises:
+        LpipsUnavailable: the file is missing or its hash is not the pinned one (one line).
+    """
+    if net not in LPIPS_WEIGHTS:
+        raise ValueError(f"unknown ImageNet trunk {net!r}; choose one of {', '.join(LPIPS_WEIGHTS)}")
+    entry = LPIPS_WEIGHTS[net]
+    path = Path(folder or lpips_weights_dir()) / entry.file
+    if not path.is_file():
+        raise LpipsUnavailable(f"ImageNet weights unavailable: no {path} (run scripts/install_lpips_weights.py once, at set-up)")
+    from nerfmeta.io import sha256_file
+
+    found = sha256_file(path)
+    if found != (sha256 or entry.sha256):
+        raise LpipsUnavailable(f"ImageNet weights unavailable: {path} has SHA-256 {found[:12]}..., not the pinned "
+                               f"{(sha256 or entry.sha256)[:12]}...; rerun scripts/install_lpips_weights.py")
+    from safetensors.torch import load_file
+
+    from nerfmeta.compat import import_torchvision
+
+    tv = import_torchvision()
+    # Built on the meta device (no memory, no random initialisation: AlexNet's unused classifier alone
+    # is 58M parameters), then every tensor that is used is assigned from the file.
+    with torch.device("meta"):
+        trunk = (tv.models.alexnet if net == "alex" else tv.models.vgg16)(weights=None).features
+    trunk.load_state_dict({k.removeprefix("features."): v for k, v in load_file(path).items()}, assign=True)
+    for p in trunk.parameters():
+        p.requires_grad_(False)
+    return trunk.eval()
+
+
 def load_lpips(net: str = "alex", *, device: str | torch.device = "cpu", folder: str | os.PathLike | None = None,
                sha256: str | None = None) -> torch.nn.Module:
     """The ``lpips.LPIPS`` network (v0.1 heads of the ``lpips`` package) with the converted backbone; nothing is downloaded.
@@ -473,40 +512,23 @@ def load_lpips(net: str = "alex", *, device: str | torch.device = "cpu", folder:
     """
     if net not in LPIPS_WEIGHTS:
         raise ValueError(f"unknown LPIPS backbone {net!r}; choose one of {', '.join(LPIPS_WEIGHTS)}")
-    entry = LPIPS_WEIGHTS[net]
-    path = Path(folder or lpips_weights_dir()) / entry.file
-    reason = lpips_skip_reason(LPIPS_MIN_SIZE, LPIPS_MIN_SIZE, net, path.parent)
+    reason = lpips_skip_reason(LPIPS_MIN_SIZE, LPIPS_MIN_SIZE, net, folder)
     if reason:
         raise LpipsUnavailable(reason)
-    from nerfmeta.io import sha256_file
-
-    found = sha256_file(path)
-    if found != (sha256 or entry.sha256):
-        raise LpipsUnavailable(f"LPIPS unavailable: {path} has SHA-256 {found[:12]}..., not the pinned "
-                               f"{(sha256 or entry.sha256)[:12]}...; rerun scripts/install_lpips_weights.py")
-    from safetensors.torch import load_file
-
-    from nerfmeta.compat import import_torchvision
-
-    tv = import_torchvision()
+    features = load_imagenet_trunk(net, folder=folder, sha256=sha256)
     import lpips as lpips_package
 
-    # Built on the meta device (no memory, no random initialisation: AlexNet's unused classifier alone
-    # is 58M parameters), then every tensor that is used is assigned from a file.
     with torch.device("meta"):
-        trunk = (tv.models.alexnet if net == "alex" else tv.models.vgg16)(weights=None)
         with warnings.catch_warnings():  # lpips asks torchvision with the deprecated pretrained=False
             warnings.simplefilter("ignore", UserWarning)
             model = lpips_package.LPIPS(net=net, pretrained=False, pnet_rand=True, verbose=False)
-    features = {k.removeprefix("features."): v for k, v in load_file(path).items()}
-    trunk.features.load_state_dict(features, assign=True)
     heads = Path(lpips_package.__file__).parent / "weights" / "v0.1" / f"{net}.pth"
     model.load_state_dict(torch.load(heads, map_location="cpu", weights_only=True), strict=False, assign=True)
     model.scaling_layer = lpips_package.ScalingLayer()  # its two constant buffers
     slices = [getattr(model.net, f"slice{k}") for k in range(1, model.net.N_slices + 1)]
     for block in slices:  # the slices hold torchvision's own modules under their index in ``features``
         for name in list(block._modules):
-            block._modules[name] = trunk.features[int(name)]
+            block._modules[name] = features[int(name)]
     left = [name for name, t in [*model.named_parameters(), *model.named_buffers()] if t.is_meta]
     if left:
         raise RuntimeError(f"LPIPS {net}: no weights for {', '.join(left)}")

@@ -115,7 +115,8 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     ``classifier`` is a classifier folder or a loaded :class:`classifier.store.Classifier`.
     """
     from classifier.inputs import read_scene_views
-    from classifier.store import load_classifier, model_inputs, view_outputs
+    from classifier.reference import view_descriptors
+    from classifier.store import cached_trunk, load_classifier, model_inputs, view_outputs
     from nerfmeta.collection.generate import load_collection
 
     clf = load_classifier(classifier) if isinstance(classifier, (str, Path)) else classifier
@@ -125,8 +126,9 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     for record in (coll.by_split(split) if split else coll.scenes):
         views = read_scene_views(coll.scene_path(record), size=meta.input_size, background=meta.background)
         features, logits = view_outputs(clf.model, model_inputs(views, meta), mirror=meta.mirror_views)
+        reference = view_descriptors(cached_trunk("vgg16"), views, meta.background) if clf.stats.reference is not None else None
         rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
-                     "views": int(views.shape[0])})
+                     "views": int(views.shape[0]), "reference": reference})
     return judge(rows, meta.categories, meta.score, meta.thresholds, clf.stats)
 
 
@@ -256,7 +258,8 @@ def recipe_config(classifier_dir: Path, **changes):
         arch=recipe["arch"], stem=recipe["stem"], input_size=recipe["input_size"], background=tuple(recipe["background"]),
         mean=tuple(recipe["mean"]), std=tuple(recipe["std"]), keep_fraction=recipe["keep_fraction"],
         stats_views=recipe["stats_views"], covariance_shrinkage=recipe["covariance_shrinkage"], score=recipe["score"],
-        holdout_categories=tuple(recipe["holdout_categories"]))
+        holdout_categories=tuple(recipe["holdout_categories"]),
+        **{k: recipe[k] for k in ("reference", "reference_keep_fraction") if k in recipe})
     return TrainConfig(**{**fields, **changes})
 
 
@@ -279,7 +282,7 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     cache = classifier_dir / f"outputs_{fresh.name}{'_mirror' if config.mirror_views else ''}.pt"
     if cache.is_file():
         saved = torch.load(cache, weights_only=True)
-        return {**saved, "inputs": CalibrationInputs(**saved["inputs"])}
+        return with_reference({**saved, "inputs": CalibrationInputs(**saved["inputs"])}, classifier_dir.parent, collection, fresh, config)
     clf = load_classifier(classifier_dir)
     coll = load_collection(collection)
     splits = plan_splits(coll, config.holdout_categories)
@@ -297,7 +300,53 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     tmp = cache.with_suffix(".tmp")
     torch.save(saved, tmp)
     os.replace(tmp, cache)
-    return {**saved, "inputs": inputs}
+    return with_reference({**saved, "inputs": inputs}, classifier_dir.parent, collection, fresh, config)
+
+
+def with_reference(cached: dict, work: Path, collection: Path, fresh: Path, config) -> dict:
+    """:func:`cached_outputs` with the ImageNet reference descriptors (``config.reference``) of the training collection's
+    scenes (:class:`~classifier.train.CalibrationInputs`' reference fields) and of every fresh scene (``"reference"`` of
+    each row), computed once per collection pair and kept in ``work`` (the trunk does not depend on the network)."""
+    from dataclasses import replace
+
+    import torch
+
+    if config.reference == "none":
+        return cached
+    from classifier.data import load_view_set
+    from classifier.inputs import read_scene_views
+    from classifier.reference import REFERENCE_VIEWS, view_descriptors
+    from classifier.store import cached_trunk
+    from classifier.train import plan_splits, scene_descriptors
+    from nerfmeta.collection.generate import load_collection
+
+    cache = work / f"reference_{config.reference}_{collection.name}_{fresh.name}.pt"
+    if cache.is_file():
+        saved = torch.load(cache, weights_only=True)
+    else:
+        trunk = cached_trunk(config.reference)
+        coll = load_collection(collection)
+        splits = plan_splits(coll, config.holdout_categories)
+        if list(splits.categories) != list(cached["categories"]):
+            raise SystemExit(f"{collection}: categories {splits.categories} differ from the network's {cached['categories']}")
+        views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
+                 for part in (splits.train, splits.val, splits.holdout_val)]
+        train, val, held = (scene_descriptors(trunk, v, config.background, REFERENCE_VIEWS) for v in views)
+        labels = [int(v.labels[v.scene_views(k)[0]]) for v in views[:2] for k in range(len(v.scenes))]
+        fresh_coll = load_collection(fresh)
+        rows = {}
+        for record in fresh_coll.scenes:
+            v = read_scene_views(fresh_coll.scene_path(record), size=config.input_size, background=config.background)
+            rows[record.name] = view_descriptors(trunk, v, config.background)
+        saved = {"known": train + val, "labels": torch.tensor(labels), "val_index": torch.arange(len(train), len(train) + len(val)),
+                 "holdout_val": held, "fresh": rows}
+        tmp = cache.with_suffix(".tmp")
+        torch.save(saved, tmp)
+        os.replace(tmp, cache)
+    inputs = replace(cached["inputs"], reference_known=saved["known"], reference_labels=saved["labels"],
+                     reference_val_index=saved["val_index"], reference_holdout_val=saved["holdout_val"])
+    fresh_rows = [{**r, "reference": saved["fresh"][r["scene"]]} for r in cached["fresh"]]
+    return {**cached, "inputs": inputs, "fresh": fresh_rows}
 
 
 def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds: dict, stats) -> dict:
@@ -309,10 +358,10 @@ def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds:
 
     out_rows = []
     for r in rows:
-        pred = decide(r["logits"], r["features"], categories, score, thresholds[score], stats)
+        pred = decide(r["logits"], r["features"], categories, score, thresholds[score], stats, r.get("reference"))
         out_rows.append({"scene": r["scene"], "category": r["category"], "known": r["category"] in categories,
                          "predicted": pred.category, "unknown": pred.unknown, "views": r.get("views", pred.views),
-                         "scores": scene_scores(r["logits"], r["features"], stats)})
+                         "scores": scene_scores(r["logits"], r["features"], stats, r.get("reference"))})
     known = [r for r in out_rows if r["known"]]
     held = [r for r in out_rows if not r["known"]]
     out = {
@@ -327,7 +376,7 @@ def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds:
                    if r["predicted"] != r["category"] or r["unknown"]]
         + [f"{r['scene']}: {r['predicted']} (not flagged)" for r in held if not r["unknown"]],
     }
-    for name in SCORES:
+    for name in (n for n in SCORES if n in thresholds and all(n in r["scores"] for r in out_rows)):
         k = torch.tensor([r["scores"][name] for r in known], dtype=torch.float64)
         h = torch.tensor([r["scores"][name] for r in held], dtype=torch.float64)
         t = thresholds[name]
@@ -364,8 +413,10 @@ def recalibrate(cached: dict, config, before: bool = False) -> dict:
     from classifier.train import calibrate_inputs, select_score
 
     if before:
-        config = replace(config, class_scale_prior="pooled", mirror_views=False)
+        config = replace(config, class_scale_prior="pooled", mirror_views=False, reference="none")
         cached = unmirrored(cached)
+        cached = {**cached, "inputs": replace(cached["inputs"], reference_known=None),
+                  "fresh": [{**r, "reference": None} for r in cached["fresh"]]}
     categories = tuple(cached["categories"])
     stats, thresholds, metrics = calibrate_inputs(cached["inputs"], config, len(categories))
     score, _ = select_score(config.score, metrics)

@@ -61,9 +61,12 @@ def test_auto_score_picks_the_best_validation_auroc_else_the_default():
     with_holdout = {"holdout_val_scenes": 8, "scores": {"msp": {"holdout_val_auroc": 0.9}, "energy": {"holdout_val_auroc": 0.97},
                                "mahalanobis": {"holdout_val_auroc": 0.95}, "class_mahalanobis": {"holdout_val_auroc": 0.96}}}
     assert select_score("auto", with_holdout)[0] == "energy"
-    tie = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
+    tie = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES if k != "fused"}}
     assert select_score("auto", tie)[0] == DEFAULT_SCORE == "combined"
-    without = {"scores": {k: {} for k in SCORES}}
+    # with a reference network (``fused`` calibrated) the fallback is fused
+    tie_fused = {"holdout_val_scenes": 8, "scores": {k: {"holdout_val_auroc": 0.9} for k in SCORES}}
+    assert select_score("auto", tie_fused)[0] == "fused"
+    without = {"scores": {k: {} for k in SCORES if k != "fused"}}
     assert select_score("auto", without) == (DEFAULT_SCORE, select_score("auto", without)[1])
     assert select_score("msp", with_holdout) == ("msp", "given")
 
@@ -75,8 +78,10 @@ def test_auto_score_falls_back_to_the_class_score_only_with_enough_training_scen
     score, why = select_score("auto", {**tie, "fewest_train_scenes": enough})
     assert score == "class_mahalanobis" and "tied" in why
     assert select_score("auto", {**few_held, "fewest_train_scenes": enough})[0] == "class_mahalanobis"
-    assert select_score("auto", {**tie, "fewest_train_scenes": short})[0] == DEFAULT_SCORE
-    assert select_score("auto", {**few_held, "fewest_train_scenes": short})[0] == DEFAULT_SCORE
+    assert select_score("auto", {**tie, "fewest_train_scenes": short})[0] == "fused"
+    assert select_score("auto", {**few_held, "fewest_train_scenes": short})[0] == "fused"
+    no_reference = {"holdout_val_scenes": 2, "scores": {k: {"holdout_val_auroc": 1.0} for k in SCORES if k != "fused"}}
+    assert select_score("auto", {**no_reference, "fewest_train_scenes": short})[0] == DEFAULT_SCORE
     better = {**tie, "fewest_train_scenes": enough, "scores": {**tie["scores"], "class_mahalanobis": {"holdout_val_auroc": 0.9}}}
     assert select_score("auto", better)[0] == DEFAULT_SCORE  # a measured difference still wins over the fallback
 

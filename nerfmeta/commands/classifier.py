@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from classifier.config import ARCHITECTURES, CLASS_SCALE_PRIORS, SCORES, STEMS, THRESHOLD_RULES, TrainConfig
+from classifier.config import ARCHITECTURES, CLASS_SCALE_PRIORS, REFERENCE_NETS, SCORES, STEMS, THRESHOLD_RULES, TrainConfig
 from nerfmeta import config as options
 from nerfmeta.data.registry import parse_background
 from nerfmeta.errors import ConfigError
@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     options.add_config_options(
         p, TrainConfig, skip=("augment",), flags={"time_budget_s": "--time-budget"},
         choices={"arch": ARCHITECTURES, "stem": STEMS, "score": ("auto", *SCORES), "threshold_rule": THRESHOLD_RULES,
-                 "class_scale_prior": CLASS_SCALE_PRIORS},
+                 "class_scale_prior": CLASS_SCALE_PRIORS, "reference": REFERENCE_NETS},
         parsers={"background": parse_background},
         metavars={"input_size": "PX", "time_budget_s": "S", "holdout_categories": "A,B", "keep_fraction": "F",
                   "background": "COLOUR", "weights": "FILE", "device": "DEV"},
