@@ -303,16 +303,16 @@ def cached_outputs(classifier_dir: Path, collection: Path, fresh: Path) -> dict:
     return with_reference({**saved, "inputs": inputs}, classifier_dir.parent, collection, fresh, config)
 
 
-def with_reference(cached: dict, work: Path, collection: Path, fresh: Path, config) -> dict:
+def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, config) -> dict:
     """:func:`cached_outputs` with the ImageNet reference descriptors (``config.reference``) of the training collection's
     scenes (:class:`~classifier.train.CalibrationInputs`' reference fields) and of every fresh scene (``"reference"`` of
-    each row), computed once per collection pair and kept in ``work`` (the trunk does not depend on the network)."""
+    each row), computed once per collection and kept in ``work`` (the trunk does not depend on the network)."""
     from dataclasses import replace
 
     import torch
 
     if config.reference == "none":
-        return cached
+        return cached_in
     from classifier.data import load_view_set
     from classifier.inputs import read_scene_views
     from classifier.reference import REFERENCE_VIEWS, view_descriptors
@@ -320,33 +320,38 @@ def with_reference(cached: dict, work: Path, collection: Path, fresh: Path, conf
     from classifier.train import plan_splits, scene_descriptors
     from nerfmeta.collection.generate import load_collection
 
-    cache = work / f"reference_{config.reference}_{collection.name}_{fresh.name}.pt"
-    if cache.is_file():
-        saved = torch.load(cache, weights_only=True)
-    else:
-        trunk = cached_trunk(config.reference)
+    def cached(name: str, compute):
+        path = work / f"reference_{config.reference}_{name}.pt"
+        if path.is_file():
+            return torch.load(path, weights_only=True)
+        value = compute()
+        tmp = path.with_suffix(".tmp")
+        torch.save(value, tmp)
+        os.replace(tmp, path)
+        return value
+
+    def known_scenes():
         coll = load_collection(collection)
         splits = plan_splits(coll, config.holdout_categories)
-        if list(splits.categories) != list(cached["categories"]):
-            raise SystemExit(f"{collection}: categories {splits.categories} differ from the network's {cached['categories']}")
+        if list(splits.categories) != list(cached_in["categories"]):
+            raise SystemExit(f"{collection}: categories {splits.categories} differ from the network's {cached_in['categories']}")
         views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
                  for part in (splits.train, splits.val, splits.holdout_val)]
-        train, val, held = (scene_descriptors(trunk, v, config.background, REFERENCE_VIEWS) for v in views)
+        train, val, held = (scene_descriptors(cached_trunk(config.reference), v, config.background, REFERENCE_VIEWS) for v in views)
         labels = [int(v.labels[v.scene_views(k)[0]]) for v in views[:2] for k in range(len(v.scenes))]
-        fresh_coll = load_collection(fresh)
-        rows = {}
-        for record in fresh_coll.scenes:
-            v = read_scene_views(fresh_coll.scene_path(record), size=config.input_size, background=config.background)
-            rows[record.name] = view_descriptors(trunk, v, config.background)
-        saved = {"known": train + val, "labels": torch.tensor(labels), "val_index": torch.arange(len(train), len(train) + len(val)),
-                 "holdout_val": held, "fresh": rows}
-        tmp = cache.with_suffix(".tmp")
-        torch.save(saved, tmp)
-        os.replace(tmp, cache)
-    inputs = replace(cached["inputs"], reference_known=saved["known"], reference_labels=saved["labels"],
+        return {"known": train + val, "labels": torch.tensor(labels), "val_index": torch.arange(len(train), len(train) + len(val)),
+                "holdout_val": held}
+
+    def fresh_scenes():
+        coll = load_collection(fresh)
+        return {r.name: view_descriptors(cached_trunk(config.reference), read_scene_views(
+            coll.scene_path(r), size=config.input_size, background=config.background), config.background) for r in coll.scenes}
+
+    saved = {**cached(collection.name, known_scenes), "fresh": cached(fresh.name, fresh_scenes)}
+    inputs = replace(cached_in["inputs"], reference_known=saved["known"], reference_labels=saved["labels"],
                      reference_val_index=saved["val_index"], reference_holdout_val=saved["holdout_val"])
-    fresh_rows = [{**r, "reference": saved["fresh"][r["scene"]]} for r in cached["fresh"]]
-    return {**cached, "inputs": inputs, "fresh": fresh_rows}
+    fresh_rows = [{**r, "reference": saved["fresh"][r["scene"]]} for r in cached_in["fresh"]]
+    return {**cached_in, "inputs": inputs, "fresh": fresh_rows}
 
 
 def judge(rows: list[dict], categories: tuple[str, ...], score: str, thresholds: dict, stats) -> dict:
