@@ -102,6 +102,14 @@ def view_descriptors(trunk: torch.nn.Sequential, views: torch.Tensor, background
     return torch.cat(out)
 
 
+def spaced_views(views: torch.Tensor, count: int = REFERENCE_VIEWS) -> torch.Tensor:
+    """At most ``count`` evenly spaced views of ``views`` (n, ...), as the training scenes' descriptors were taken; a
+    scene classified from hundreds of views pays the trunk for ``count`` of them."""
+    if views.shape[0] <= count:
+        return views
+    return views[torch.linspace(0, views.shape[0] - 1, count).round().long()]
+
+
 def reference_score(descriptors: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
     """Minus the squared Mahalanobis distance of the scene's mean descriptor to the nearest known class (float64)."""
     return -scene_distances(descriptors, stats).min()

@@ -34,7 +34,7 @@ from classifier.config import ARCHITECTURES, SCORES, STEMS
 from classifier.data import RGB, composite, normalize
 from classifier.model import SceneNet, empty_model
 from classifier.predict import FeatureStats, Prediction, decide
-from classifier.reference import ReferenceModel, load_trunk, view_descriptors
+from classifier.reference import ReferenceModel, load_trunk, spaced_views, view_descriptors
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +144,7 @@ def classify_views(classifier: Classifier, views: torch.Tensor) -> Prediction:
     reference = None
     if meta.score == "fused":
         try:
-            reference = view_descriptors(cached_trunk("vgg16"), views, meta.background)
+            reference = view_descriptors(cached_trunk("vgg16"), spaced_views(views), meta.background)
         except LpipsUnavailable as err:
             log.warning("deciding with 'combined' instead of 'fused': %s", err)
             classifier, meta = classifier.with_score("combined"), classifier.with_score("combined").meta

@@ -115,7 +115,7 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     ``classifier`` is a classifier folder or a loaded :class:`classifier.store.Classifier`.
     """
     from classifier.inputs import read_scene_views
-    from classifier.reference import view_descriptors
+    from classifier.reference import spaced_views, view_descriptors
     from classifier.store import cached_trunk, load_classifier, model_inputs, view_outputs
     from nerfmeta.collection.generate import load_collection
 
@@ -126,7 +126,8 @@ def evaluate(collection: Path, classifier, split: str | None = "test") -> dict:
     for record in (coll.by_split(split) if split else coll.scenes):
         views = read_scene_views(coll.scene_path(record), size=meta.input_size, background=meta.background)
         features, logits = view_outputs(clf.model, model_inputs(views, meta), mirror=meta.mirror_views)
-        reference = view_descriptors(cached_trunk("vgg16"), views, meta.background) if clf.stats.reference is not None else None
+        reference = (view_descriptors(cached_trunk("vgg16"), spaced_views(views), meta.background)
+                     if clf.stats.reference is not None else None)
         rows.append({"scene": record.name, "category": record.category, "features": features, "logits": logits,
                      "views": int(views.shape[0]), "reference": reference})
     return judge(rows, meta.categories, meta.score, meta.thresholds, clf.stats)
@@ -315,7 +316,7 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
         return cached_in
     from classifier.data import load_view_set
     from classifier.inputs import read_scene_views
-    from classifier.reference import REFERENCE_VIEWS, view_descriptors
+    from classifier.reference import REFERENCE_VIEWS, spaced_views, view_descriptors
     from classifier.store import cached_trunk
     from classifier.train import plan_splits, scene_descriptors
     from nerfmeta.collection.generate import load_collection
@@ -344,8 +345,8 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
 
     def fresh_scenes():
         coll = load_collection(fresh)
-        return {r.name: view_descriptors(cached_trunk(config.reference), read_scene_views(
-            coll.scene_path(r), size=config.input_size, background=config.background), config.background) for r in coll.scenes}
+        return {r.name: view_descriptors(cached_trunk(config.reference), spaced_views(read_scene_views(
+            coll.scene_path(r), size=config.input_size, background=config.background)), config.background) for r in coll.scenes}
 
     saved = {**cached(collection.name, known_scenes), "fresh": cached(fresh.name, fresh_scenes)}
     inputs = replace(cached_in["inputs"], reference_known=saved["known"], reference_labels=saved["labels"],

@@ -12,7 +12,7 @@ import torch
 from classifier.config import TrainConfig
 from classifier.predict import _shrink, fit_feature_stats, scene_scores
 from classifier.reference import (REFERENCE_SIZE, ReferenceModel, fit_reference, fused_threshold, leave_one_out_scores,
-                                  view_descriptors)
+                                  spaced_views, view_descriptors)
 from classifier.store import REFERENCE_PREFIX, WEIGHTS_FILE, ClassifierError, load_classifier
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import load_tensors, save_tensors, sha256_file
@@ -78,6 +78,14 @@ def test_fused_score_needs_combined_a_reference_model_and_descriptors():
     assert "fused" not in scene_scores(logits, scenes[0].float(), with_ref)
     scores = scene_scores(logits, scenes[0].float(), with_ref, scenes[0].float())
     assert scores["fused"] == pytest.approx(scores["combined"] + model.z(scenes[0].float()))
+
+
+def test_spaced_views_takes_at_most_sixteen_evenly_spaced_views_as_training_did():
+    views = torch.arange(40.0).view(40, 1)
+    assert spaced_views(views[:16]).flatten().tolist() == list(range(16))
+    picked = spaced_views(views).flatten()
+    assert picked.numel() == 16 and picked[0] == 0 and picked[-1] == 39
+    assert picked.tolist() == torch.linspace(0, 39, 16).round().tolist()
 
 
 def test_reference_settings_are_validated():
