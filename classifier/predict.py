@@ -28,14 +28,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
 from classifier.config import SCORES
-
-if TYPE_CHECKING:
-    from classifier.reference import ReferenceModel
 
 
 @dataclass(frozen=True)
@@ -74,6 +70,28 @@ class FeatureStats:
     score_norm: torch.Tensor | None = None
     train_scale: torch.Tensor | None = None
     reference: "ReferenceModel | None" = None
+
+
+@dataclass(frozen=True)
+class ReferenceModel:
+    """The statistics and scale of the ImageNet reference score (:mod:`classifier.reference`).
+
+    Attributes:
+        stats: class means and covariances of the known scenes' mean descriptors (``class_scale`` etc. unused).
+        norm: (2,) mean and standard deviation of the known scenes' leave-one-out reference scores.
+    """
+
+    stats: FeatureStats
+    norm: torch.Tensor
+
+    def z(self, descriptors: torch.Tensor) -> float:
+        """A scene's reference score in units of the known scenes' spread. descriptors: (n_views, dim)."""
+        return float((reference_score(descriptors, self.stats) - self.norm[0].double()) / self.norm[1].double())
+
+
+def reference_score(descriptors: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
+    """Minus the squared Mahalanobis distance of the scene's mean descriptor to the nearest known class (float64)."""
+    return -scene_distances(descriptors, stats).min()
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:

@@ -28,12 +28,16 @@ background and resized to :data:`REFERENCE_SIZE` pixels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import torch
 import torch.nn.functional as F
 
-from classifier.predict import FeatureStats, _shrink, fit_feature_stats, scene_distances
+from classifier.config import IMAGENET_MEAN, IMAGENET_STD
+from classifier.predict import ReferenceModel, _shrink, fit_feature_stats, reference_score
+
+__all__ = ["ReferenceModel", "fit_reference", "fused_threshold", "leave_one_out_scores", "load_trunk",
+           "reference_score", "spaced_views", "view_descriptors"]
 
 REFERENCE_SIZE = 128
 """Side the views are resized to for the trunk (design seeds: AUROC 0.97-1.00 at 128 px, 0.95-0.98 at 64)."""
@@ -45,25 +49,6 @@ REFERENCE_VIEWS = 16
 VGG16_TAPS = (3, 8, 15, 22, 29)
 """Indices in torchvision's ``vgg16().features`` of the ReLUs whose outputs are pooled (relu1_2 ... relu5_3)."""
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-@dataclass(frozen=True)
-class ReferenceModel:
-    """The reference score's statistics and scale.
-
-    Attributes:
-        stats: class means and covariances of the known scenes' mean descriptors (``class_scale`` etc. unused).
-        norm: (2,) mean and standard deviation of the known scenes' leave-one-out reference scores.
-    """
-
-    stats: FeatureStats
-    norm: torch.Tensor
-
-    def z(self, descriptors: torch.Tensor) -> float:
-        """A scene's reference score in units of the known scenes' spread. descriptors: (n_views, dim)."""
-        return float((reference_score(descriptors, self.stats) - self.norm[0].double()) / self.norm[1].double())
 
 
 def load_trunk(net: str = "vgg16") -> torch.nn.Sequential:
@@ -108,11 +93,6 @@ def spaced_views(views: torch.Tensor, count: int = REFERENCE_VIEWS) -> torch.Ten
     if views.shape[0] <= count:
         return views
     return views[torch.linspace(0, views.shape[0] - 1, count).round().long()]
-
-
-def reference_score(descriptors: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
-    """Minus the squared Mahalanobis distance of the scene's mean descriptor to the nearest known class (float64)."""
-    return -scene_distances(descriptors, stats).min()
 
 
 def leave_one_out_scores(scenes: list[torch.Tensor], labels: torch.Tensor, n_classes: int, shrinkage: float) -> torch.Tensor:
@@ -164,11 +144,6 @@ def fit_reference(
     loo = leave_one_out_scores(scenes, labels, n_classes, shrinkage)
     spread = float(loo.std()) if loo.numel() > 1 else 1.0
     return ReferenceModel(stats, torch.tensor([float(loo.mean()), max(spread, 1e-6)], dtype=torch.float32)), loo
-
-
-def fused_score(combined: torch.Tensor | float, reference_z: torch.Tensor | float) -> torch.Tensor:
-    """``combined + reference_z``: higher = more like a known category (float64)."""
-    return torch.as_tensor(combined, dtype=torch.float64) + torch.as_tensor(reference_z, dtype=torch.float64)
 
 
 def fused_threshold(val_combined: torch.Tensor, known_reference_z: torch.Tensor, keep_fraction: float) -> float:
