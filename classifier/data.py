@@ -236,6 +236,22 @@ class ViewSet:
         """Indices of the views of scene ``k``."""
         return torch.nonzero(self.scene_index == k).flatten()
 
+    def limit_scenes(self, per_class: int) -> "ViewSet":
+        """At most ``per_class`` scenes of each label (evenly spaced in scene order), with all their views; scenes
+        keep their order and are renumbered."""
+        labels = [int(self.labels[self.scene_views(k)[0]]) for k in range(len(self.scenes))]
+        keep: list[int] = []
+        for c in sorted(set(labels)):
+            ks = [k for k, label in enumerate(labels) if label == c]
+            if len(ks) > per_class:
+                ks = [ks[int(i)] for i in torch.linspace(0, len(ks) - 1, per_class).round().long()]
+            keep += ks
+        keep.sort()
+        number = torch.full((len(self.scenes),), -1, dtype=torch.long)
+        number[keep] = torch.arange(len(keep))
+        idx = torch.nonzero(number[self.scene_index] >= 0).flatten()
+        return ViewSet(self.views[idx], self.labels[idx], number[self.scene_index[idx]], tuple(self.scenes[k] for k in keep))
+
     def subset(self, views_per_scene: int) -> "ViewSet":
         """``views_per_scene`` evenly spaced views of every scene (all of them when a scene has fewer)."""
         keep = [self.labels[:0]]

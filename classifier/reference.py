@@ -46,6 +46,12 @@ REFERENCE_VIEWS = 16
 """Views per known scene whose descriptors fit the reference statistics (evenly spaced; VGG16 at 128 px costs about
 0.13 s a view on one core of the 2-core CPU)."""
 
+REFERENCE_SCENES = 16
+"""Training scenes per known category whose descriptors fit the reference statistics (evenly spaced; every validation
+scene is used too). Bounds the trunk's cost at training: at 40 scenes per category all 216 known scenes took about
+760 s more beside a 1150 s training (a loaded machine); a 12-per-category collection (10 training scenes each) is
+unaffected."""
+
 VGG16_TAPS = (3, 8, 15, 22, 29)
 """Indices in torchvision's ``vgg16().features`` of the ReLUs whose outputs are pooled (relu1_2 ... relu5_3)."""
 

@@ -43,7 +43,7 @@ from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFA
 from classifier.data import ViewSet, augment_views, chimera_partners, chimera_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
-from classifier.reference import REFERENCE_SIZE, REFERENCE_VIEWS, fit_reference, fused_threshold, load_trunk, view_descriptors
+from classifier.reference import REFERENCE_SCENES, REFERENCE_SIZE, REFERENCE_VIEWS, fit_reference, fused_threshold, load_trunk, view_descriptors
 from classifier.predict import (
     FeatureStats,
     auroc,
@@ -332,7 +332,7 @@ def calibration_inputs(
 ) -> CalibrationInputs:
     """The network's outputs on the first ``config.stats_views`` views of each training scene and on every view of
     the validation scenes (no augmentation); with ``trunk``, the ImageNet descriptors of :data:`REFERENCE_VIEWS` views of
-    every known scene and held-out validation scene too."""
+    :data:`REFERENCE_SCENES` training scenes per category, every known validation scene and every held-out one too."""
     meta = _meta(config, categories)
     sample = train.subset(config.stats_views)
     features, logits = view_outputs(model, model_inputs(sample.float_views(slice(None)), meta), mirror=config.mirror_views)
@@ -342,8 +342,9 @@ def calibration_inputs(
     held = scene_outputs(model, holdout_val, meta) if len(holdout_val.scenes) else []
     reference = {}
     if trunk is not None:
-        known = scene_descriptors(trunk, train, config.background, REFERENCE_VIEWS)
-        train_labels = [int(train.labels[train.scene_views(k)[0]]) for k in range(len(train.scenes))]
+        ref_train = train.limit_scenes(REFERENCE_SCENES)
+        known = scene_descriptors(trunk, ref_train, config.background, REFERENCE_VIEWS)
+        train_labels = [int(ref_train.labels[ref_train.scene_views(k)[0]]) for k in range(len(ref_train.scenes))]
         reference = dict(
             reference_known=known + scene_descriptors(trunk, val, config.background, REFERENCE_VIEWS),
             reference_labels=torch.tensor(train_labels + labels.tolist(), dtype=torch.long),
@@ -648,7 +649,8 @@ def reference_trunk(net: str) -> tuple[torch.nn.Sequential | None, dict[str, Any
     except LpipsUnavailable as err:
         log.warning("no fused score: %s", err)
         return None, {"net": net, "used": False, "why": str(err)}
-    return trunk, {"net": net, "used": True, "size": REFERENCE_SIZE, "views_per_scene": REFERENCE_VIEWS}
+    return trunk, {"net": net, "used": True, "size": REFERENCE_SIZE, "views_per_scene": REFERENCE_VIEWS,
+                   "train_scenes_per_category": REFERENCE_SCENES}
 
 
 def check_output(out: Path, overwrite: bool) -> None:

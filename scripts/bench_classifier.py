@@ -316,13 +316,13 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
         return cached_in
     from classifier.data import load_view_set
     from classifier.inputs import read_scene_views
-    from classifier.reference import REFERENCE_VIEWS, spaced_views, view_descriptors
+    from classifier.reference import REFERENCE_SCENES, REFERENCE_VIEWS, spaced_views, view_descriptors
     from classifier.store import cached_trunk
     from classifier.train import plan_splits, scene_descriptors
     from nerfmeta.collection.generate import load_collection
 
     def cached(name: str, compute):
-        path = work / f"reference_{config.reference}_{name}.pt"
+        path = work / f"reference_{config.reference}_{name}_{REFERENCE_SCENES}.pt"
         if path.is_file():
             return torch.load(path, weights_only=True)
         value = compute()
@@ -338,6 +338,7 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
             raise SystemExit(f"{collection}: categories {splits.categories} differ from the network's {cached_in['categories']}")
         views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
                  for part in (splits.train, splits.val, splits.holdout_val)]
+        views[0] = views[0].limit_scenes(REFERENCE_SCENES)  # as calibration_inputs
         train, val, held = (scene_descriptors(cached_trunk(config.reference), v, config.background, REFERENCE_VIEWS) for v in views)
         labels = [int(v.labels[v.scene_views(k)[0]]) for v in views[:2] for k in range(len(v.scenes))]
         return {"known": train + val, "labels": torch.tensor(labels), "val_index": torch.arange(len(train), len(train) + len(val)),

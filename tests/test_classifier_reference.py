@@ -88,6 +88,21 @@ def test_spaced_views_takes_at_most_sixteen_evenly_spaced_views_as_training_did(
     assert picked.tolist() == torch.linspace(0, 39, 16).round().tolist()
 
 
+def test_limit_scenes_keeps_evenly_spaced_scenes_of_each_class_with_all_their_views():
+    from classifier.data import ViewSet
+
+    scene_labels = [0, 1, 0, 0, 1, 0, 0]  # five scenes of class 0, two of class 1
+    index = torch.tensor([k for k in range(7) for _ in range(2)])
+    views = ViewSet(torch.arange(14).view(14, 1, 1, 1).to(torch.uint8), torch.tensor(scene_labels).repeat_interleave(2), index,
+                    tuple(f"s{k}" for k in range(7)))
+    got = views.limit_scenes(3)
+    # class 0 scenes 0, 2, 3, 5, 6 -> evenly spaced 0, 3, 6; class 1 keeps both (1, 4)
+    assert got.scenes == ("s0", "s1", "s3", "s4", "s6")
+    assert got.scene_index.tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4]
+    assert got.views.flatten().tolist() == [0, 1, 2, 3, 6, 7, 8, 9, 12, 13]
+    assert views.limit_scenes(9).scenes == views.scenes
+
+
 def test_reference_settings_are_validated():
     with pytest.raises(ConfigError, match="--reference 'resnet'"):
         TrainConfig(reference="resnet").validate()
@@ -140,7 +155,7 @@ def test_a_trained_classifier_decides_with_fused_and_keeps_its_reference(fused_c
 
     doc = json.loads((fused_classifier / "classifier.json").read_text())
     assert doc["unknown"]["score"] == "fused" and "fused" in doc["validation"]["scores"]
-    assert doc["reference"] == {"net": "vgg16", "used": True, "size": 128, "views_per_scene": 16}
+    assert doc["reference"] == {"net": "vgg16", "used": True, "size": 128, "views_per_scene": 16, "train_scenes_per_category": 16}
     clf = load_classifier(fused_classifier)
     assert isinstance(clf.stats.reference, ReferenceModel) and clf.stats.reference.stats.means.shape == (2, 1472)
 
