@@ -43,7 +43,8 @@ from classifier.config import (CALIBRATION_NEEDS, CLASS_SCORE_TRAIN_SCENES, DEFA
 from classifier.data import ViewSet, augment_views, chimera_partners, chimera_views, load_view_set, normalize
 from classifier.model import SceneNet, build_model, load_pretrained
 from classifier.plots import plot_training_curve
-from classifier.reference import REFERENCE_SCENES, REFERENCE_SIZE, REFERENCE_VIEWS, fit_reference, fused_threshold, load_trunk, view_descriptors
+from classifier.reference import (REFERENCE_SCENES, REFERENCE_SIZE, REFERENCE_VIEWS, fit_reference, fused_threshold, load_trunk,
+                                  view_descriptors)
 from classifier.predict import (
     FeatureStats,
     auroc,
@@ -298,8 +299,9 @@ class CalibrationInputs:
         val: per known validation scene, (features (n_views, dim), logits (n_views, n_classes)).
         val_labels: (n_val,) class of each known validation scene.
         holdout_val: per held-out validation scene, (features, logits).
-        reference_known: per known scene (training then validation), (n_views, dim') ImageNet descriptors
-            (:mod:`classifier.reference`); None without a reference network.
+        reference_known: per known scene (training scenes, at most :data:`REFERENCE_SCENES` per category, then every
+            validation scene), (n_views, dim') ImageNet descriptors (:mod:`classifier.reference`); None without a
+            reference network.
         reference_labels: (n_known,) class of each of them.
         reference_val_index: (n_val,) row of ``reference_known`` of each known validation scene, in ``val``'s order.
         reference_holdout_val: per held-out validation scene, its descriptors.
@@ -598,7 +600,9 @@ def train_classifier(
         cb(TrainEvent("calibrate", history["steps"], history["steps"], time_s=history["time_s"]))
     model.cpu()
     trunk, reference_note = reference_trunk(config.reference)
+    calibration_start = time.perf_counter()
     stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories, trunk)
+    calibration_s = time.perf_counter() - calibration_start
     score, rule = select_score(config.score, metrics)
     metrics["score_selection"] = {"score": score, "rule": rule}
     count = lambda records: {c: sum(r.category == c for r in records) for c in splits.categories}  # noqa: E731
@@ -623,6 +627,7 @@ def train_classifier(
             "stop_reason": history["stop_reason"],
             "optimisation_time_s": round(history["time_s"], 2),
             "load_time_s": round(load_s, 2),
+            "calibration_time_s": round(calibration_s, 2),
             "wall_time_s": round(wall_s, 2),
             "pretrained_weights": config.weights,
             "fresh_parameters": fresh,

@@ -155,6 +155,7 @@ def test_a_trained_classifier_decides_with_fused_and_keeps_its_reference(fused_c
 
     doc = json.loads((fused_classifier / "classifier.json").read_text())
     assert doc["unknown"]["score"] == "fused" and "fused" in doc["validation"]["scores"]
+    assert 0 < doc["training"]["calibration_time_s"] < doc["training"]["wall_time_s"]  # the trunk's cost is reported
     assert doc["reference"] == {"net": "vgg16", "used": True, "size": 128, "views_per_scene": 16, "train_scenes_per_category": 16}
     clf = load_classifier(fused_classifier)
     assert isinstance(clf.stats.reference, ReferenceModel) and clf.stats.reference.stats.means.shape == (2, 1472)
