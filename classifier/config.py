@@ -184,7 +184,9 @@ class TrainConfig:
     """Torch device to train on."""
     reference: str = "vgg16"
     """Frozen ImageNet network whose features give the ``fused`` score (:mod:`classifier.reference`; its weights are
-    installed at set-up), or ``none``. Without its weights, training warns and goes on without it."""
+    installed at set-up), or ``none``. Without its weights, training warns and goes on without it; with ``score="auto"``
+    and :data:`CLASS_SCORE_TRAIN_SCENES` training scenes per category it is not run (``auto`` falls back to
+    ``class_mahalanobis`` there)."""
     reference_keep_fraction: float = 0.98
     """Fraction of known scenes the ``fused`` threshold keeps (:func:`classifier.reference.fused_threshold`); chosen on
     the design fresh seeds 101 / 505 / 606 (0.98: both of issue 14's targets on all three; 0.99: held-out flagged 83 %

@@ -312,7 +312,11 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
 
     import torch
 
-    if config.reference == "none":
+    from classifier.train import fewest_scenes_per_class, reference_skip_reason
+
+    data = cached_in["inputs"]
+    fewest = fewest_scenes_per_class(data.train_labels, data.train_scene_index, len(cached_in["categories"]))
+    if config.reference == "none" or reference_skip_reason(config, fewest):  # as classifier train decides
         return cached_in
     from classifier.data import load_view_set
     from classifier.inputs import read_scene_views

@@ -103,6 +103,17 @@ def test_limit_scenes_keeps_evenly_spaced_scenes_of_each_class_with_all_their_vi
     assert views.limit_scenes(9).scenes == views.scenes
 
 
+def test_reference_is_left_out_only_where_auto_cannot_use_it():
+    from classifier.config import CLASS_SCORE_TRAIN_SCENES
+    from classifier.train import reference_skip_reason
+
+    enough = CLASS_SCORE_TRAIN_SCENES
+    assert "class_mahalanobis" in reference_skip_reason(TrainConfig(), enough)
+    assert reference_skip_reason(TrainConfig(), enough - 1) is None
+    assert reference_skip_reason(TrainConfig(score="fused"), enough) is None
+    assert reference_skip_reason(TrainConfig(reference="none"), enough) is None
+
+
 def test_reference_settings_are_validated():
     with pytest.raises(ConfigError, match="--reference 'resnet'"):
         TrainConfig(reference="resnet").validate()
