@@ -3,9 +3,10 @@
 The ResNet is trained on the collection alone; with a dozen scenes per category it knows little about
 what else exists, and a sofa shaped like its cars sits inside the cars' features (issue 14). A frozen
 ImageNet network has seen a thousand categories. Its features of a scene's views, averaged, are
-modelled per known category exactly as the ResNet's are (:class:`~classifier.predict.FeatureStats`:
-class means, a shrunk covariance of scene means, widened for scenes with few views), giving
-``reference``: minus the squared Mahalanobis distance to the nearest known category.
+modelled per known category as the ResNet's are (:class:`~classifier.predict.FeatureStats`: class
+means, a shrunk covariance of scene means; but *not* widened for scenes with fewer views, see
+:func:`fit_reference`), giving ``reference``: minus the squared Mahalanobis distance to the nearest
+known category.
 
 Because the trunk is not trained on the collection, *every* known scene of the collection (training
 and validation) can be scored leave-one-out, by statistics fitted without it: dozens of unbiased known
@@ -54,7 +55,6 @@ unaffected."""
 
 VGG16_TAPS = (3, 8, 15, 22, 29)
 """Indices in torchvision's ``vgg16().features`` of the ReLUs whose outputs are pooled (relu1_2 ... relu5_3)."""
-
 
 
 def load_trunk(net: str = "vgg16") -> torch.nn.Sequential:

@@ -147,7 +147,8 @@ def classify_views(classifier: Classifier, views: torch.Tensor) -> Prediction:
             reference = view_descriptors(cached_trunk("vgg16"), spaced_views(views), meta.background)
         except LpipsUnavailable as err:
             log.warning("deciding with 'combined' instead of 'fused': %s", err)
-            classifier, meta = classifier.with_score("combined"), classifier.with_score("combined").meta
+            classifier = classifier.with_score("combined")
+            meta = classifier.meta
     features, logits = view_outputs(classifier.model, model_inputs(views, meta), mirror=meta.mirror_views)
     prediction = decide(logits, features, meta.categories, meta.score, meta.threshold, classifier.stats, reference)
     return replace(prediction, views=int(views.shape[0]))  # the views given, mirrored ones not counted

@@ -200,3 +200,21 @@ def test_training_without_the_weights_warns_and_leaves_fused_out(tmp_path: Path,
     assert doc["reference"]["used"] is False and "no-weights" in doc["reference"]["why"]
     assert "fused" not in doc["unknown"]["thresholds"] and doc["unknown"]["score"] == "combined"
     assert any("no fused score" in r.message for r in caplog.records)
+
+
+def test_fused_classifier_without_the_weights_decides_with_combined_and_says_so(fused_classifier: Path, tmp_path: Path,
+                                                                                monkeypatch, caplog):
+    from classifier.inputs import read_scene_views
+    from classifier.store import cached_trunk, classify_views
+
+    clf = load_classifier(fused_classifier)
+    views = read_scene_views(next((fused_classifier.parent / "coll" / "chair").iterdir()), size=16, background=clf.meta.background)
+    assert classify_views(clf, views).score_name == "fused"
+    cached_trunk.cache_clear()
+    monkeypatch.setenv("NERFMETA_LPIPS_DIR", str(tmp_path / "gone"))
+    try:
+        prediction = classify_views(clf, views)
+    finally:
+        cached_trunk.cache_clear()
+    assert prediction.score_name == "combined" and prediction.threshold == clf.meta.thresholds["combined"]
+    assert any("instead of 'fused'" in r.message for r in caplog.records)
