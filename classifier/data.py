@@ -243,9 +243,7 @@ class ViewSet:
         keep: list[int] = []
         for c in sorted(set(labels)):
             ks = [k for k, label in enumerate(labels) if label == c]
-            if len(ks) > per_class:
-                ks = [ks[int(i)] for i in torch.linspace(0, len(ks) - 1, per_class).round().long()]
-            keep += ks
+            keep += [ks[int(i)] for i in evenly_spaced(len(ks), per_class)]
         keep.sort()
         number = torch.full((len(self.scenes),), -1, dtype=torch.long)
         number[keep] = torch.arange(len(keep))
@@ -257,11 +255,16 @@ class ViewSet:
         keep = [self.labels[:0]]
         for k in range(len(self.scenes)):
             idx = self.scene_views(k)
-            if idx.numel() > views_per_scene:
-                idx = idx[torch.linspace(0, idx.numel() - 1, views_per_scene).round().long()]
-            keep.append(idx)
+            keep.append(idx[evenly_spaced(idx.numel(), views_per_scene)])
         keep = torch.cat(keep)
         return ViewSet(self.views[keep], self.labels[keep], self.scene_index[keep], self.scenes)
+
+
+def evenly_spaced(n: int, count: int) -> torch.Tensor:
+    """Indices of ``count`` evenly spaced items of ``n`` (first and last included), or all ``n`` when ``n <= count``."""
+    if n <= count:
+        return torch.arange(n)
+    return torch.linspace(0, n - 1, count).round().long()
 
 
 def to_uint8(views: torch.Tensor) -> torch.Tensor:

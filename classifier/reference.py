@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from classifier.config import IMAGENET_MEAN, IMAGENET_STD
+from classifier.data import evenly_spaced
 from classifier.predict import ReferenceModel, _shrink, fit_feature_stats, reference_score
 
 __all__ = ["ReferenceModel", "fit_reference", "fused_threshold", "leave_one_out_scores", "load_trunk",
@@ -96,9 +97,7 @@ def view_descriptors(trunk: torch.nn.Sequential, views: torch.Tensor, background
 def spaced_views(views: torch.Tensor, count: int = REFERENCE_VIEWS) -> torch.Tensor:
     """At most ``count`` evenly spaced views of ``views`` (n, ...), as the training scenes' descriptors were taken; a
     scene classified from hundreds of views pays the trunk for ``count`` of them."""
-    if views.shape[0] <= count:
-        return views
-    return views[torch.linspace(0, views.shape[0] - 1, count).round().long()]
+    return views[evenly_spaced(views.shape[0], count)]
 
 
 def leave_one_out_scores(scenes: list[torch.Tensor], labels: torch.Tensor, n_classes: int, shrinkage: float) -> torch.Tensor:

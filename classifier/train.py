@@ -327,6 +327,21 @@ def scene_descriptors(trunk: torch.nn.Sequential, views: ViewSet, background, pe
     return [desc[sample.scene_index == k] for k in range(len(sample.scenes))]
 
 
+def reference_inputs(trunk: torch.nn.Sequential, train: ViewSet, val: ViewSet, holdout_val: ViewSet, background) -> dict[str, Any]:
+    """:class:`CalibrationInputs`' reference fields: the descriptors of :data:`REFERENCE_VIEWS` views of
+    :data:`REFERENCE_SCENES` training scenes per category, of every known validation scene and every held-out one."""
+    train = train.limit_scenes(REFERENCE_SCENES)
+    known = scene_descriptors(trunk, train, background, REFERENCE_VIEWS)
+    val_desc = scene_descriptors(trunk, val, background, REFERENCE_VIEWS)
+    labels = [int(v.labels[v.scene_views(k)[0]]) for v in (train, val) for k in range(len(v.scenes))]
+    return dict(
+        reference_known=known + val_desc,
+        reference_labels=torch.tensor(labels, dtype=torch.long),
+        reference_val_index=torch.arange(len(known), len(known) + len(val_desc)),
+        reference_holdout_val=scene_descriptors(trunk, holdout_val, background, REFERENCE_VIEWS) if len(holdout_val.scenes) else [],
+    )
+
+
 @torch.no_grad()
 def calibration_inputs(
     model: SceneNet, train: ViewSet, val: ViewSet, holdout_val: ViewSet, config: TrainConfig, categories: tuple[str, ...],
@@ -342,17 +357,7 @@ def calibration_inputs(
     val_out = scene_outputs(model, val, meta)
     labels = torch.tensor([int(val.labels[val.scene_views(k)[0]]) for k in range(len(val_out))], dtype=torch.long)
     held = scene_outputs(model, holdout_val, meta) if len(holdout_val.scenes) else []
-    reference = {}
-    if trunk is not None:
-        ref_train = train.limit_scenes(REFERENCE_SCENES)
-        known = scene_descriptors(trunk, ref_train, config.background, REFERENCE_VIEWS)
-        train_labels = [int(ref_train.labels[ref_train.scene_views(k)[0]]) for k in range(len(ref_train.scenes))]
-        reference = dict(
-            reference_known=known + scene_descriptors(trunk, val, config.background, REFERENCE_VIEWS),
-            reference_labels=torch.tensor(train_labels + labels.tolist(), dtype=torch.long),
-            reference_val_index=torch.arange(len(known), len(known) + len(val_out)),
-            reference_holdout_val=scene_descriptors(trunk, holdout_val, config.background, REFERENCE_VIEWS) if held else [],
-        )
+    reference = reference_inputs(trunk, train, val, holdout_val, config.background) if trunk is not None else {}
     return CalibrationInputs(features, logits, sample.labels.repeat(copies), sample.scene_index.repeat(copies), val_out, labels, held,
                              **reference)
 

@@ -320,13 +320,13 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
         return cached_in
     from classifier.data import load_view_set
     from classifier.inputs import read_scene_views
-    from classifier.reference import REFERENCE_SCENES, REFERENCE_VIEWS, spaced_views, view_descriptors
+    from classifier.reference import REFERENCE_SCENES, spaced_views, view_descriptors
     from classifier.store import cached_trunk
-    from classifier.train import plan_splits, scene_descriptors
+    from classifier.train import plan_splits, reference_inputs
     from nerfmeta.collection.generate import load_collection
 
     def cached(name: str, compute):
-        path = work / f"reference_{config.reference}_{name}_{REFERENCE_SCENES}.pt"
+        path = work / f"reference_inputs_{config.reference}_{name}_{REFERENCE_SCENES}.pt"
         if path.is_file():
             return torch.load(path, weights_only=True)
         value = compute()
@@ -342,21 +342,16 @@ def with_reference(cached_in: dict, work: Path, collection: Path, fresh: Path, c
             raise SystemExit(f"{collection}: categories {splits.categories} differ from the network's {cached_in['categories']}")
         views = [load_view_set(coll, part, splits.categories, size=config.input_size, background=config.background)
                  for part in (splits.train, splits.val, splits.holdout_val)]
-        views[0] = views[0].limit_scenes(REFERENCE_SCENES)  # as calibration_inputs
-        train, val, held = (scene_descriptors(cached_trunk(config.reference), v, config.background, REFERENCE_VIEWS) for v in views)
-        labels = [int(v.labels[v.scene_views(k)[0]]) for v in views[:2] for k in range(len(v.scenes))]
-        return {"known": train + val, "labels": torch.tensor(labels), "val_index": torch.arange(len(train), len(train) + len(val)),
-                "holdout_val": held}
+        return reference_inputs(cached_trunk(config.reference), *views, config.background)  # as calibration_inputs
 
     def fresh_scenes():
         coll = load_collection(fresh)
         return {r.name: view_descriptors(cached_trunk(config.reference), spaced_views(read_scene_views(
             coll.scene_path(r), size=config.input_size, background=config.background)), config.background) for r in coll.scenes}
 
-    saved = {**cached(collection.name, known_scenes), "fresh": cached(fresh.name, fresh_scenes)}
-    inputs = replace(cached_in["inputs"], reference_known=saved["known"], reference_labels=saved["labels"],
-                     reference_val_index=saved["val_index"], reference_holdout_val=saved["holdout_val"])
-    fresh_rows = [{**r, "reference": saved["fresh"][r["scene"]]} for r in cached_in["fresh"]]
+    inputs = replace(cached_in["inputs"], **cached(collection.name, known_scenes))
+    fresh = cached(fresh.name, fresh_scenes)
+    fresh_rows = [{**r, "reference": fresh[r["scene"]]} for r in cached_in["fresh"]]
     return {**cached_in, "inputs": inputs, "fresh": fresh_rows}
 
 
