@@ -76,22 +76,29 @@ class FeatureStats:
 class ReferenceModel:
     """The statistics and scale of the ImageNet reference score (:mod:`classifier.reference`).
 
+    A scene is scored by its mean descriptor alone, whatever its number of views (the threshold comes from known
+    scenes scored the same way), so no view covariance is kept.
+
     Attributes:
-        stats: class means and covariances of the known scenes' mean descriptors (``class_scale`` etc. unused).
+        means: (n_classes, dim) class means of the known scenes' mean descriptors.
+        between: (dim, dim) covariance of the scene means around their class mean (shrunk, positive definite).
         norm: (2,) mean and standard deviation of the known scenes' leave-one-out reference scores.
     """
 
-    stats: FeatureStats
+    means: torch.Tensor
+    between: torch.Tensor
     norm: torch.Tensor
 
     def z(self, descriptors: torch.Tensor) -> float:
         """A scene's reference score in units of the known scenes' spread. descriptors: (n_views, dim)."""
-        return float((reference_score(descriptors, self.stats) - self.norm[0].double()) / self.norm[1].double())
+        return float((reference_score(descriptors, self.means, self.between) - self.norm[0].double()) / self.norm[1].double())
 
 
-def reference_score(descriptors: torch.Tensor, stats: FeatureStats) -> torch.Tensor:
-    """Minus the squared Mahalanobis distance of the scene's mean descriptor to the nearest known class (float64)."""
-    return -scene_distances(descriptors, stats).min()
+def reference_score(descriptors: torch.Tensor, means: torch.Tensor, between: torch.Tensor) -> torch.Tensor:
+    """Minus the squared Mahalanobis distance (under ``between``) of the scene's mean descriptor to the nearest class
+    mean (float64). descriptors: (n_views, dim); means: (n_classes, dim); between: (dim, dim)."""
+    precision = torch.linalg.inv(between.double())
+    return -mahalanobis_distances(descriptors.mean(dim=0, keepdim=True), means, precision)[0].min()
 
 
 def scene_probabilities(logits: torch.Tensor) -> torch.Tensor:

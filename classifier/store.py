@@ -48,7 +48,8 @@ CURVE_FILE = "training_curve.png"
 HISTORY_FILE = "history.json"
 STATS_PREFIX = "feature_stats."
 REFERENCE_PREFIX = "reference_stats."
-REFERENCE_FIELDS = ("means", "between", "within", "reference_views", "norm")
+REFERENCE_FIELDS = ("means", "between", "norm")
+"""What a saved reference model holds (classifiers of session 21 also hold an unused ``within`` and ``reference_views``)."""
 NO_CLASSIFIER_HINT = (
     "pass --classifier DIR, a folder written by 'nerfmeta classifier train' "
     "(required until the model zoo ships a default classifier)"
@@ -176,8 +177,7 @@ def classifier_tensors(model: SceneNet, stats: FeatureStats) -> dict[str, torch.
             tensors[STATS_PREFIX + name] = getattr(stats, name)
     if stats.reference is not None:
         ref = stats.reference
-        values = (ref.stats.means, ref.stats.between, ref.stats.within, ref.stats.reference_views, ref.norm)
-        tensors.update({REFERENCE_PREFIX + k: v.float() for k, v in zip(REFERENCE_FIELDS, values)})
+        tensors.update({REFERENCE_PREFIX + k: getattr(ref, k).float() for k in REFERENCE_FIELDS})
     return tensors
 
 
@@ -358,15 +358,15 @@ def load_classifier(folder: str | os.PathLike | None, device: str | torch.device
         raise ClassifierError(f"{weights}: {STATS_PREFIX}score_norm is missing but classifier.json calibrates combined")
     if any(k.startswith(REFERENCE_PREFIX) for k in tensors):
         try:
-            means, between, within, views, norm = (tensors[REFERENCE_PREFIX + k] for k in REFERENCE_FIELDS)
+            means, between, norm = (tensors[REFERENCE_PREFIX + k] for k in REFERENCE_FIELDS)
         except KeyError:
             raise ClassifierError(f"{weights}: reference statistics incomplete (need {REFERENCE_PREFIX}"
                                   f"{'/'.join(REFERENCE_FIELDS)})") from None
         dim = means.shape[-1]
         if (means.dim() != 2 or means.shape[0] != len(meta.categories) or tuple(between.shape) != (dim, dim)
-                or tuple(within.shape) != (dim, dim) or views.numel() != 1 or tuple(norm.shape) != (2,) or not float(norm[1]) > 0):
+                or tuple(norm.shape) != (2,) or not float(norm[1]) > 0):
             raise ClassifierError(f"{weights}: reference statistics have the wrong shape for {len(meta.categories)} categories")
-        stats = replace(stats, reference=ReferenceModel(FeatureStats(means, between, within, views), norm))
+        stats = replace(stats, reference=ReferenceModel(means, between, norm))
     if stats.reference is None and "fused" in meta.thresholds:
         raise ClassifierError(f"{weights}: {REFERENCE_PREFIX}* is missing but classifier.json calibrates fused")
     model.to(device).eval()

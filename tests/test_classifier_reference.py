@@ -50,7 +50,8 @@ def test_fit_reference_scale_is_that_of_the_leave_one_out_scores_and_scores_outl
     scenes, labels = _scenes(views=6)
     model, loo = fit_reference([s.float() for s in scenes], labels, 3, shrinkage=0.05)
     assert torch.allclose(model.norm.double(), torch.tensor([loo.mean(), loo.std()], dtype=torch.float64), rtol=1e-5)
-    assert float(model.stats.reference_views) == 1.0  # no widening for scenes with fewer views
+    one = scenes[0][:1].float()
+    assert model.z(one) == pytest.approx(model.z(one.repeat(6, 1)), rel=1e-6)  # no widening for scenes with fewer views
     known_z = model.z(scenes[0].float())
     far = scenes[0].float() + 25.0  # the same views, moved far from every class
     assert model.z(far) < known_z - 5.0
@@ -169,7 +170,11 @@ def test_a_trained_classifier_decides_with_fused_and_keeps_its_reference(fused_c
     assert 0 < doc["training"]["calibration_time_s"] < doc["training"]["wall_time_s"]  # the trunk's cost is reported
     assert doc["reference"] == {"net": "vgg16", "used": True, "size": 128, "views_per_scene": 16, "train_scenes_per_category": 16}
     clf = load_classifier(fused_classifier)
-    assert isinstance(clf.stats.reference, ReferenceModel) and clf.stats.reference.stats.means.shape == (2, 1472)
+    assert isinstance(clf.stats.reference, ReferenceModel) and clf.stats.reference.means.shape == (2, 1472)
+    from safetensors.torch import load_file
+
+    saved = sorted(k for k in load_file(str(fused_classifier / "model.safetensors")) if k.startswith("reference_stats."))
+    assert saved == ["reference_stats.between", "reference_stats.means", "reference_stats.norm"]  # no unused view spread
 
 
 def test_fused_classifier_without_its_reference_tensors_is_refused(fused_classifier: Path, tmp_path: Path):
