@@ -206,7 +206,7 @@ def test_comparison_of_a_fit_with_itself_is_one(hand_runs):
 def test_report_numbers_on_hand_made_logs(hand_runs, tmp_path):
     run, _, _ = hand_runs
     other = _write_fit(tmp_path / "run2", {25: 12.0, 50: 16.0, 100: 22.0}, 100, 0.05, init="meta", category="lamp",
-                       route={"route": "meta", "category": None, "known_categories": ["chair"]})
+                       init_load_s=0.5, route={"route": "meta", "category": None, "known_categories": ["chair"], "classify_s": 1.0})
     _write_fit(other / "compare" / "scratch", {25: 10.0, 50: 12.0, 100: 16.0}, 100, 0.05, category="lamp")
     report = write_report([run, other], tmp_path / "out")
     assert report["routing"]["n_scored"] == 2 and report["routing"]["accuracy"] == 1.0
@@ -225,6 +225,12 @@ def test_report_numbers_on_hand_made_logs(hand_runs, tmp_path):
     band = routed["curves"]["iter"]
     assert band["x"] == [25, 50, 75, 100] and band["mean"] == [13.5, 18.5, pytest.approx((17.5 + 19.0) / 2), 22.5]
     assert report["groups"]["all"]["methods"]["meta"]["n_runs"] == 1
+    # the wall-clock band is the optimisation-time band moved by what each fit spent before its first step
+    timed = report["groups"]["meta"]["methods"]["routed"]["curves"]
+    start = load_fit_log(other).start_s
+    assert start == pytest.approx(1.5)
+    assert timed["wall_s"]["x"] == pytest.approx([x + start for x in timed["time_s"]["x"]], abs=1e-3)
+    assert timed["wall_s"]["mean"] == pytest.approx(timed["time_s"]["mean"], abs=1e-3)
     for name in ("report.md", "report.json", "psnr_vs_iter.png", "psnr_vs_time.png", "psnr_vs_iter_meta.png",
                  "psnr_vs_time_category.png"):
         assert (tmp_path / "out" / name).is_file(), name
