@@ -191,7 +191,8 @@ def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: di
         extra: more top-level entries for ``classifier.json`` (recipe, metrics, ...).
         weights_dtype: dtype the network's floating-point weights are stored in; ``torch.float16``
             halves the file (ResNet-18: 45 -> 22 MB) for shipping, and loading widens them back to
-            float32. The feature statistics of the unknown score always stay float32.
+            float32. The statistics of the unknown scores (``feature_stats.*``, ``reference_stats.*``) always stay
+            float32: their thresholds were calibrated on the float32 values.
 
     Returns:
         the path of ``classifier.json``.
@@ -199,7 +200,7 @@ def save_classifier(folder: str | os.PathLike, classifier: Classifier, extra: di
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     weights = folder / WEIGHTS_FILE
-    tensors = {k: v.to(weights_dtype) if v.is_floating_point() and not k.startswith(STATS_PREFIX) else v
+    tensors = {k: v.to(weights_dtype) if v.is_floating_point() and not k.startswith((STATS_PREFIX, REFERENCE_PREFIX)) else v
                for k, v in classifier_tensors(classifier.model, classifier.stats).items()}
     save_tensors(weights, tensors, metadata={"format": FORMAT})
     meta = classifier.meta

@@ -13,7 +13,7 @@ from classifier.config import TrainConfig
 from classifier.predict import _shrink, fit_feature_stats, scene_scores
 from classifier.reference import (REFERENCE_SIZE, ReferenceModel, fit_reference, fused_threshold, leave_one_out_scores,
                                   spaced_views, view_descriptors)
-from classifier.store import REFERENCE_PREFIX, WEIGHTS_FILE, ClassifierError, load_classifier
+from classifier.store import REFERENCE_PREFIX, WEIGHTS_FILE, ClassifierError, load_classifier, save_classifier
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import load_tensors, save_tensors, sha256_file
 from nerfmeta.metrics import LpipsUnavailable, load_imagenet_trunk
@@ -175,6 +175,15 @@ def test_a_trained_classifier_decides_with_fused_and_keeps_its_reference(fused_c
 
     saved = sorted(k for k in load_file(str(fused_classifier / "model.safetensors")) if k.startswith("reference_stats."))
     assert saved == ["reference_stats.between", "reference_stats.means", "reference_stats.norm"]  # no unused view spread
+
+
+def test_a_half_precision_save_keeps_the_reference_statistics_exact(fused_classifier: Path, tmp_path: Path):
+    """The zoo ships its classifier in float16; the fused threshold was calibrated on float32 statistics."""
+    clf = load_classifier(fused_classifier)
+    half = load_classifier(save_classifier(tmp_path / "half", clf, weights_dtype=torch.float16).parent)
+    for name in ("means", "between", "norm"):
+        got, want = getattr(half.stats.reference, name), getattr(clf.stats.reference, name)
+        assert got.dtype == torch.float32 and torch.equal(got, want), name
 
 
 def test_fused_classifier_without_its_reference_tensors_is_refused(fused_classifier: Path, tmp_path: Path):
