@@ -108,13 +108,18 @@ def meta_on_known(job: tuple[str, str, str, str]) -> dict:
 
     torch.set_num_threads(1)
     name, scene, zoo_dir, routed_out = job
+    from nerfmeta.io import sha256_file
+
     out = Path(routed_out).parent.parent / "meta_on_known" / name
-    if not (out / "summary.json").is_file() or "comparison" not in json.loads((out / "summary.json").read_text()):
+    zoo_key, marker = sha256_file(Path(zoo_dir) / "manifest.json"), out.parent / f"{name}.{ZOO_MARKER}"
+    if not (out / "summary.json").is_file() or "comparison" not in json.loads((out / "summary.json").read_text()) \
+            or not marker.is_file() or marker.read_text() != zoo_key:  # fitted with another zoo's meta-initialisation
         routed = RunConfig.from_json(json.loads((Path(routed_out) / "config.json").read_text()))
         config = RunConfig(**{**{f: getattr(routed, f) for f in routed.__dataclass_fields__}, "init": f"meta:{Path(zoo_dir) / 'meta'}",
                               "freeze": 0})
         run_fit(config, out, overwrite=True)
         write_comparison(out, {b: Path(routed_out) / "compare" / b for b in BASELINES}, out, name="meta")
+        marker.write_text(zoo_key)
     return json.loads((out / "summary.json").read_text())
 
 
@@ -163,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     report = json.loads((report_dir / "report.json").read_text())
     lines = render_section(scenes, summaries, report, zoo, args, wall, load_before, load_after)
     if controls:
-        lines += control_table(scenes, summaries, controls)
+        lines += control_table(scenes, summaries, controls, args.out / "runs")
     print("\n".join(lines))
     if args.write:
         from benchlib.sections import write_section as write_benchmark_section
@@ -190,7 +195,8 @@ def render_section(scenes, summaries, report, zoo, args, wall, load_before, load
         comp = s.get("comparison") or {}
         methods = comp.get("methods", {})
         final = {k: (methods.get(k) or {}).get("final_test_psnr") for k in ("scratch", "scratch-nerf", "routed")}
-        mlp = mlp_comparison(methods["routed"]["run"], "routed", methods["scratch-nerf"]["run"])
+        run = args.out / "runs" / name  # the summaries' own "run" paths may name the build-aside folder of --overwrite
+        mlp = mlp_comparison(run, "routed", run / "compare" / "scratch-nerf")
         behind.append(comp.get("behind_wall_db") or 0.0)
         rows.append(f"| {name} | {'known' if category in known else 'unseen'} | {s['default_route']['route']} | {r['route']}"
                     f"{' (' + r['category'] + ')' if r['route'] == 'category' else ''} | {'yes' if ok else '**no**'} | "
@@ -233,7 +239,7 @@ def render_section(scenes, summaries, report, zoo, args, wall, load_before, load
     return out
 
 
-def control_table(scenes, summaries, controls) -> list[str]:
+def control_table(scenes, summaries, controls, runs: Path) -> list[str]:
     """Known-category scenes: the category route against the meta-initialisation, both against the same scratch MLP fit."""
     out = ["### Control: known categories from the meta-initialisation", "",
            "The 10 known-category scenes fitted again from the meta-learned initialisation (same settings, same scratch fits); "
@@ -242,9 +248,9 @@ def control_table(scenes, summaries, controls) -> list[str]:
     known = [(n, s) for (n, _, _), s in zip(scenes, summaries) if s["route"]["known_categories"] and n.split("_")[0] in s["route"]["known_categories"]]
     ratios = {"routed": [], "meta": []}
     for (name, s), c in zip(known, controls):
-        methods = s["comparison"]["methods"]
-        rc = mlp_comparison(methods["routed"]["run"], "routed", methods["scratch-nerf"]["run"])
-        mc = mlp_comparison(c["comparison"]["methods"]["meta"]["run"], "meta", methods["scratch-nerf"]["run"])
+        methods, run = s["comparison"]["methods"], runs / name
+        rc = mlp_comparison(run, "routed", run / "compare" / "scratch-nerf")
+        mc = mlp_comparison(runs.parent / "meta_on_known" / name, "meta", run / "compare" / "scratch-nerf")
         rf = methods["routed"]["final_test_psnr"]
         mf = c["comparison"]["methods"]["meta"]["final_test_psnr"]
         out.append(f"| {name} | {s['route']['route']} | {_fmt({'v': rf}, 'v')} | {_fmt({'v': mf}, 'v')} | "

@@ -279,12 +279,13 @@ ZOO_CLASSIFIER = Path(__file__).resolve().parents[1] / "model_zoo" / "classifier
 
 
 @pytest.mark.skipif(not (ZOO_CLASSIFIER / WEIGHTS_FILE).is_file(), reason="model_zoo/classifier not in this checkout")
-def test_classifier_folder_from_before_the_robust_calibration_loads_and_predicts_the_same():
-    """model_zoo/classifier was written before classifier.json had a "calibration" entry: same threshold, same score."""
+def test_the_shipped_zoo_classifier_decides_with_fused_and_predicts_as_when_it_was_built():
+    """model_zoo/classifier (rebuilt 2026-11-27, float16 weights, float32 statistics): its own threshold, its own score,
+    and on three views of a flat shaded rectangle the values it gave when it was shipped (a regression pin)."""
     doc = json.loads((ZOO_CLASSIFIER / META_FILE).read_text())
-    assert "calibration" not in doc
     clf = load_classifier(ZOO_CLASSIFIER)
-    assert clf.meta.score == "class_mahalanobis" and clf.meta.threshold == doc["unknown"]["threshold"]
+    assert clf.meta.score == "fused" and clf.meta.threshold == doc["unknown"]["threshold"]
+    assert doc["weights"]["dtype"] == "float16" and clf.stats.reference.between.dtype == torch.float32
     ramp = torch.linspace(0, 1, 64)
     views = torch.zeros(3, 4, 64, 64)
     for i in range(3):  # three views of a flat, shaded rectangle
@@ -293,10 +294,9 @@ def test_classifier_folder_from_before_the_robust_calibration_loads_and_predicts
         views[i, 1] = views[i, 3] * 0.5
         views[i, 2] = views[i, 3] * ramp[:, None]
     prediction = classify_views(clf, views)
-    # the values the code before the robust calibration gave (commit d49508c)
-    assert prediction.category == "mug" and prediction.unknown
-    assert prediction.score == pytest.approx(-1.0041412554162814, rel=1e-6)
-    assert prediction.confidence == pytest.approx(0.8858678340911865, rel=1e-6)
+    assert prediction.category == "mug" and prediction.unknown and prediction.score_name == "fused"
+    assert prediction.score == pytest.approx(-35.76393311382475, rel=1e-5)
+    assert prediction.confidence == pytest.approx(0.8279129862785339, rel=1e-5)
 
 
 def test_mirrored_views_follow_the_views_and_survive_a_round_trip(tmp_path: Path):
