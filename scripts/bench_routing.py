@@ -104,12 +104,11 @@ def meta_on_known(job: tuple[str, str, str, str]) -> dict:
     import torch
 
     from nerfmeta.fit.run import RunConfig, run_fit
+    from nerfmeta.io import sha256_file
     from nerfmeta.report.compare import write_comparison
 
     torch.set_num_threads(1)
     name, scene, zoo_dir, routed_out = job
-    from nerfmeta.io import sha256_file
-
     out = Path(routed_out).parent.parent / "meta_on_known" / name
     zoo_key, marker = sha256_file(Path(zoo_dir) / "manifest.json"), out.parent / f"{name}.{ZOO_MARKER}"
     if not (out / "summary.json").is_file() or "comparison" not in json.loads((out / "summary.json").read_text()) \
@@ -195,7 +194,7 @@ def render_section(scenes, summaries, report, zoo, args, wall, load_before, load
         comp = s.get("comparison") or {}
         methods = comp.get("methods", {})
         final = {k: (methods.get(k) or {}).get("final_test_psnr") for k in ("scratch", "scratch-nerf", "routed")}
-        run = args.out / "runs" / name  # the summaries' own "run" paths may name the build-aside folder of --overwrite
+        run = args.out / "runs" / name
         mlp = mlp_comparison(run, "routed", run / "compare" / "scratch-nerf")
         behind.append(comp.get("behind_wall_db") or 0.0)
         rows.append(f"| {name} | {'known' if category in known else 'unseen'} | {s['default_route']['route']} | {r['route']}"

@@ -142,6 +142,7 @@ def test_wall_clock_axis_adds_classification_and_loading_to_the_routed_fit(tmp_p
     base = _write_fit(run / "compare" / "scratch", {20: 15.0, 40: 20.0}, 40, 0.1, backbone="grid", init_load_s=0.1)
     result = write_comparison(run, {"scratch": base})
     routed, scratch = result["methods"]["routed"], result["methods"]["scratch"]
+    assert (routed["run"], scratch["run"]) == (".", "compare/scratch")  # relative: true after a move or an --overwrite swap
     assert (routed["classify_s"], routed["init_load_s"], routed["start_s"]) == (1.5, 0.5, 2.0)
     assert routed["time_s"] == 2.0 and routed["wall_s"] == 4.0 and scratch["wall_s"] == pytest.approx(4.1)
     assert routed["reach_time_s"] == pytest.approx(2.0) and routed["reach_wall_s"] == pytest.approx(4.0)

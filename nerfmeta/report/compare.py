@@ -244,8 +244,10 @@ def write_comparison(
             writes it, once, with the comparison: pass ``update_summary=False``).
 
     Returns:
-        :func:`compare_logs`'s dict with ``method=name``, plus ``renders``: the render image
-        files written (relative to ``out_dir``) and ``report``: ``"report.md"``.
+        :func:`compare_logs`'s dict with ``method=name``, each method's ``run`` relative to ``run_dir`` where it
+        lies inside it (``"."``, ``"compare/scratch"``: the summary stays true when the folder is moved, or swapped
+        in by ``--overwrite``), plus ``renders``: the render image files written (relative to ``out_dir``) and
+        ``report``: ``"report.md"``.
 
     Raises:
         ConfigError: a folder that is not a finished fit run, a name used twice, a missing baseline.
@@ -257,6 +259,8 @@ def write_comparison(
     main = load_fit_log(run_dir) if summary is None else FitLog(run_dir, dict(summary), read_metrics(run_dir / "metrics.jsonl"))
     logs = {name: main, **{k: load_fit_log(v) for k, v in methods.items()}}
     result = compare_logs(logs, baseline=baseline, method=name, iters=iters)
+    for entry in result["methods"].values():
+        entry["run"] = _run_path(Path(entry["run"]), run_dir)
     order = [baseline, *[k for k in logs if k != baseline]]
     labels = {k: _label(k, logs[k]) for k in order}
     title = f"{Path(str(logs[name].summary.get('scene', run_dir))).name}: " + " vs ".join(labels.values())
@@ -270,6 +274,14 @@ def write_comparison(
         summary["comparison"] = result
         write_json(run_dir / "summary.json", summary)
     return result
+
+
+def _run_path(path: Path, run_dir: Path) -> str:
+    """``path`` relative to ``run_dir`` when inside it (pure), else as given."""
+    try:
+        return path.relative_to(run_dir).as_posix() or "."
+    except ValueError:
+        return str(path)
 
 
 def _label(name: str, fit_log: FitLog) -> str:
