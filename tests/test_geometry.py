@@ -1,6 +1,7 @@
 """Geometry metrics, ground truth from exact SDFs, and the eval-geometry command."""
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -133,6 +134,20 @@ def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mu
     assert main(["eval-geometry", str(run), "--gt", str(tmp_path / "m.ply"), "--points", "5000", "--resolution", "32"]) == 0
     own = json.loads(capsys.readouterr().out)
     assert own["chamfer"] < 0.25 * doc["chamfer"]
+
+
+def test_a_field_with_no_surface_yet_is_recorded_in_the_summary_and_not_warned_about(mug_scene, tmp_path, caplog):
+    """A short density fit of a generated scene has no surface at the mesh level: an expected outcome, not a warning."""
+    from nerfmeta.cli import main
+
+    caplog.set_level(logging.INFO)
+    run = tmp_path / "run"
+    assert main(["fit", str(mug_scene), "--out", str(run), "--backbone", "grid", "--init", "scratch", "--iters", "1",
+                 "--batch-rays", "64", "--eval-every", "0", "--renders", "0", "--no-eval-ssim"]) == 0
+    geometry = json.loads((run / "summary.json").read_text())["geometry"]
+    assert "never crosses the level" in geometry["error"]
+    said = [r for r in caplog.records if "geometry not measured" in r.getMessage()]
+    assert said and all(r.levelno < logging.WARNING for r in said)  # logged for -v, not warned
 
 
 def test_gt_that_is_neither_mesh_nor_generated_scene_is_one_line_exit_2(tiny_scene, tmp_path, capsys):

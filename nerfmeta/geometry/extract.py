@@ -59,17 +59,21 @@ def grid_values(fn: Callable[[torch.Tensor], torch.Tensor], box: torch.Tensor, r
     return torch.cat(out).reshape(resolution, resolution, resolution).numpy()
 
 
+class NoSurfaceError(ConfigError):
+    """The field has no surface at the asked level (e.g. a short fit whose density stays below it everywhere)."""
+
+
 def marching_cubes(values: np.ndarray, box: np.ndarray, level: float, inside_above: bool) -> Mesh:
     """Triangles of the level set of ``values`` (R, R, R) on a lattice spanning ``box`` (2, 3), faces wound outward.
 
     Raises:
-        ConfigError: the level is not crossed anywhere (nothing to mesh; say the field's range).
+        NoSurfaceError: the level is not crossed anywhere (nothing to mesh; say the field's range).
     """
     from skimage import measure
 
     lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
     if not lo < level < hi or not np.isfinite(values).all():
-        raise ConfigError(f"the field never crosses the level {level:g} in its box (values {lo:.4g} .. {hi:.4g}); "
+        raise NoSurfaceError(f"the field never crosses the level {level:g} in its box (values {lo:.4g} .. {hi:.4g}); "
                           "nothing to mesh (try another --level)")
     spacing = tuple(float(s) for s in (box[1] - box[0]) / (np.array(values.shape) - 1))
     # scikit-image's normals point to lower values whatever gradient_direction says, and its winding

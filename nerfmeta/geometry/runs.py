@@ -11,7 +11,7 @@ import torch
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
-from nerfmeta.geometry.extract import extract_mesh
+from nerfmeta.geometry.extract import NoSurfaceError, extract_mesh
 from nerfmeta.geometry.mesh import Mesh, mesh_topology
 from nerfmeta.geometry.metrics import GeometryConfig, GeometryMetrics, compare_surfaces, sampling_floor
 from nerfmeta.geometry.truth import SurfaceSamples, sample_mesh_surface, sample_sdf_surfaces, scene_sdf_of
@@ -68,6 +68,9 @@ def fit_geometry(model: RadianceModel, scene: Any, config: GeometryConfig = FIT_
         with torch.random.fork_rng(devices=[]):
             mesh = mesh_in_file_frame(model, scene, config.resolution, colors=False)
         metrics = evaluate_mesh(mesh, gt, config, twin)
+    except NoSurfaceError as err:  # an expected outcome of a short or unconverged fit: in summary.json, not a warning
+        log.info("geometry not measured: %s", err)
+        return {"error": str(err)}
     except (ConfigError, ImportError) as err:
         log.warning("geometry not measured: %s", err)
         return {"error": str(err)}
