@@ -29,7 +29,6 @@ background and resized to :data:`REFERENCE_SIZE` pixels.
 
 from __future__ import annotations
 
-
 import torch
 import torch.nn.functional as F
 

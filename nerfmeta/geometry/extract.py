@@ -74,7 +74,7 @@ def marching_cubes(values: np.ndarray, box: np.ndarray, level: float, inside_abo
     lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
     if not lo < level < hi or not np.isfinite(values).all():
         raise NoSurfaceError(f"the field never crosses the level {level:g} in its box (values {lo:.4g} .. {hi:.4g}); "
-                          "nothing to mesh (try another --level)")
+                             "nothing to mesh (try another --level)")
     spacing = tuple(float(s) for s in (box[1] - box[0]) / (np.array(values.shape) - 1))
     # scikit-image's normals point to lower values whatever gradient_direction says, and its winding
     # is outward with "descent" for inside-low values, with "ascent" for inside-high (checked by a test)

@@ -47,12 +47,12 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.io import write_bytes_atomic, write_json
 from nerfmeta.report.compare import REPORT_ITERS, RULES, FitLog, compare_logs, load_fit_log
 from nerfmeta.report.curves import X_KEYS, Band, mean_band
-
-WALL = "wall_s"
-"""Curve key of the wall-clock axis: a fit's ``time_s`` plus what it spent before its first step (the fair axis)."""
 from nerfmeta.report.plots import plot_psnr_bands
 
 log = logging.getLogger(__name__)
+
+WALL = "wall_s"
+"""Curve key of the wall-clock axis: a fit's ``time_s`` plus what it spent before its first step (the fair axis)."""
 
 COMPARE_DIR = "compare"
 NO_ROUTE = "no route"
