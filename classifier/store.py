@@ -51,8 +51,7 @@ REFERENCE_PREFIX = "reference_stats."
 REFERENCE_FIELDS = ("means", "between", "norm")
 """What a saved reference model holds (classifiers of session 21 also hold an unused ``within`` and ``reference_views``)."""
 NO_CLASSIFIER_HINT = (
-    "pass --classifier DIR, a folder written by 'nerfmeta classifier train' "
-    "(required until the model zoo ships a default classifier)"
+    "pass --classifier DIR, a folder written by 'nerfmeta classifier train', or --zoo DIR, a model zoo with a classifier"
 )
 
 

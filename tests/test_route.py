@@ -305,6 +305,22 @@ def test_real_classifier_route_matches_its_answer(zoo_dir, new_scenes, tmp_path,
     assert summary["iters"] == TINY_ZOO.fit_iters  # the zoo's fit settings
 
 
+def test_classify_without_a_classifier_asks_the_zoos_and_without_a_zoo_says_what_to_pass(zoo_dir, new_scenes, monkeypatch,
+                                                                                          capsys):
+    scene = str(new_scenes["known"])
+    assert main(["classify", scene, "--classifier", str(zoo_dir / "classifier")]) == 0
+    direct = json.loads(capsys.readouterr().out)
+    assert main(["classify", scene, "--zoo", str(zoo_dir)]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == direct and "the model zoo's classifier" in err
+    monkeypatch.setenv("NERFMETA_ZOO", str(zoo_dir))  # what the shipped zoo is to a user
+    assert main(["classify", scene]) == 0 and json.loads(capsys.readouterr().out) == direct
+    monkeypatch.setenv("NERFMETA_ZOO", "none")
+    assert main(["classify", scene]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--classifier DIR" in err[0] and "--zoo DIR" in err[0]
+
+
 def test_auto_without_zoo_fits_from_scratch(tiny_scene: Path, tmp_path: Path, capsys):
     out = tmp_path / "run"
     assert main(["fit", str(tiny_scene), "--out", str(out), "--iters", "3", "--batch-rays", "32", "--set", "coarse_iters=2",

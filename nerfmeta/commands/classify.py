@@ -20,7 +20,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("scene", metavar="SCENE", help="scene folder, .npz scene, image folder or image file")
-    p.add_argument("--classifier", default=None, metavar="DIR", help="classifier folder from 'nerfmeta classifier train' (required until a model zoo exists)")
+    p.add_argument("--classifier", default=None, metavar="DIR",
+                   help="classifier folder from 'nerfmeta classifier train' (default: the model zoo's classifier, see --zoo)")
+    p.add_argument("--zoo", default=None, metavar="DIR",
+                   help="model zoo whose classifier answers when --classifier is not given (default: $NERFMETA_ZOO, else "
+                        "the model_zoo/ shipped with nerfmeta; 'none': no zoo)")
     p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON to FILE (atomically)")
     p.add_argument("--score", default=None, metavar="NAME", help="decide with another calibrated score (msp, energy, mahalanobis)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
@@ -34,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
 
     json_out = (check_output_file(args.json_out, option="--json-out", inputs=(args.scene, args.classifier))
                 if args.json_out else None)  # before any work; never replaces a file of the inputs
-    classifier = load_classifier(args.classifier, device=args.device)
+    folder = args.classifier if args.classifier is not None else zoo_classifier(args.zoo)
+    classifier = load_classifier(folder, device=args.device)
     if args.score is not None:
         classifier = classifier.with_score(args.score)
     meta = classifier.meta
@@ -45,3 +50,15 @@ def run(args: argparse.Namespace) -> int:
     json.dump(doc, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0
+
+
+def zoo_classifier(zoo: str | None) -> str | None:
+    """The classifier folder of the zoo :func:`nerfmeta.zoo.open_zoo` picks (hash-checked), else None; says which."""
+    from nerfmeta.zoo import open_zoo
+
+    found = open_zoo(zoo)
+    entry = None if found is None else found.classifier
+    if entry is None:
+        return None
+    print(f"nerfmeta classify: the model zoo's classifier ({entry.path})", file=sys.stderr)
+    return str(entry.path)
