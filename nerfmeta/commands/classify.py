@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from classifier.config import SCORES
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -26,7 +28,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="model zoo whose classifier answers when --classifier is not given (default: $NERFMETA_ZOO, else "
                         "the model_zoo/ shipped with nerfmeta; 'none': no zoo)")
     p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON to FILE (atomically)")
-    p.add_argument("--score", default=None, metavar="NAME", help="decide with another calibrated score (msp, energy, mahalanobis)")
+    p.add_argument("--score", default=None, metavar="NAME",
+                   help=f"decide with another score the classifier calibrated ({', '.join(SCORES)}; default: the one it chose)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     p.set_defaults(func=run)
 
