@@ -9,7 +9,8 @@ cannot lose to the scratch fit by construction of what it is allowed to try:
    route is the scratch grid until grid priors exist);
 2. the zoo's classifier looks at the scene's *training* views (the test views are the fit's
    evaluation and are never shown to any method) and names a category or answers "unknown":
-   the candidates are that category's model, then the meta-learned initialisation;
+   the candidates are that category's model, then the meta-learned initialisation (a scene to
+   which no prior of the zoo applies by step 3, e.g. a photograph, is not classified at all);
 3. a candidate is used only where it applies (:func:`prior_checks`, pure): its box holds the
    scene's object box (both in the loaded scene's frame, which is the frame a saved model's box
    is in: a saved model keeps its box, so the mapping is the identity and a scene outside it
@@ -229,6 +230,22 @@ def prior_checks(prior: PriorFacts, scene: SceneFacts) -> tuple[Check, ...]:
     return box, res, bg
 
 
+def any_prior_applies(priors: Mapping[str, PriorFacts], scene: SceneFacts) -> bool:
+    """Whether some prior passes every :func:`prior_checks` for ``scene`` (pure): if none does, classifying the scene
+    cannot change its route, so it is not classified (a photograph, a scene far from the zoo's resolution)."""
+    return any(all(c.passed for c in prior_checks(p, scene)) for p in priors.values())
+
+
+def _failed_by_note(checks: Sequence[Check]) -> str:
+    """The failed checks' notes, each once, with the priors it holds for ("every prior" when all of them)."""
+    priors = list(dict.fromkeys(c.prior for c in checks))
+    by_note: dict[str, list[str]] = {}
+    for c in checks:
+        if not c.passed:
+            by_note.setdefault(c.note, []).append(c.prior)
+    return "; ".join(f"{note} ({'every prior' if len(who) == len(priors) else ', '.join(who)})" for note, who in by_note.items())
+
+
 def _failed_text(checks: Sequence[Check]) -> str:
     return "; ".join(f"{c.prior}: {c.note}" for c in checks if not c.passed)
 
@@ -241,6 +258,7 @@ def decide_route(
     backbone: str,
     scene: SceneFacts | None,
     priors: Mapping[str, PriorFacts],
+    unclassified: bool = False,
 ) -> Route:
     """The starting point for a classifier answer (pure).
 
@@ -252,6 +270,8 @@ def decide_route(
         backbone: the backbone of the fit; only the zoo's priors of this backbone are candidates.
         scene: the scene's facts; None only when there is no zoo or no prior of ``backbone``.
         priors: zoo entry name -> the facts of that prior (:func:`prior_facts`).
+        unclassified: the scene was not shown to the classifier because no prior applies to it
+            (:func:`any_prior_applies`): the route is scratch, with every prior's checks.
 
     Returns:
         the route: the first candidate (the classified category's model, then the meta-learned
@@ -268,6 +288,12 @@ def decide_route(
         return Route("scratch", "scratch", 0, f"the model zoo holds no {backbone} prior (only {zoo.backbone} ones): fitting the "
                      f"{backbone} from scratch (--backbone {zoo.backbone} starts from the zoo's priors)", zoo=where,
                      backbone=backbone, checks=(check,))
+    if unclassified:
+        if scene is None:
+            raise ValueError("decide_route: the scene's facts are needed to check the zoo's priors (see scene_facts)")
+        checks = tuple(c for name in sorted(priors) for c in prior_checks(priors[name], scene))
+        return Route("scratch", "scratch", 0, f"no prior of the zoo applies to this scene ({_failed_by_note(checks)}): fitting the "
+                     f"{backbone} from scratch, without classifying it", zoo=where, backbone=backbone, checks=checks)
     facts: dict[str, Any] = {"zoo": where, "backbone": backbone}
     candidates: list[tuple[str, ZooEntry, int, str]] = []
     if prediction is None:
@@ -381,16 +407,19 @@ def classify_scene(scene_path: str | Path, zoo: Zoo, background: tuple[float, fl
 def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int, *, carve: bool = CARVE_ROUTE) -> Route:
     """Read the scene's facts and the zoo's priors, classify the scene, decide; ``classify_s`` is the wall time it took.
 
-    Nothing is read or classified when there is no zoo or the zoo has no prior of ``config.backbone``. With ``carve``,
-    a scratch grid route becomes the carved start (:func:`carve_route`).
+    Nothing is read or classified when there is no zoo or the zoo has no prior of ``config.backbone``, and the scene is
+    not classified when none of the zoo's priors applies to it (:func:`any_prior_applies`). With ``carve``, a scratch
+    grid route becomes the carved start (:func:`carve_route`).
     """
     t0 = time.perf_counter()
-    prediction, scene, priors = None, None, {}
+    prediction, scene, priors, unclassified = None, None, {}, False
     if zoo is not None and zoo.backbone == config.backbone:
         scene = scene_facts(config)
         priors = {e.name: prior_facts(zoo, e) for e in zoo.entries if e.kind in ("category", "meta")}
-        prediction = classify_scene(config.scene, zoo, config.background)
-    route = decide_route(prediction, zoo, freeze, backbone=config.backbone, scene=scene, priors=priors)
+        unclassified = not any_prior_applies(priors, scene)  # then whatever the classifier says, the route is scratch
+        if not unclassified:
+            prediction = classify_scene(config.scene, zoo, config.background)
+    route = decide_route(prediction, zoo, freeze, backbone=config.backbone, scene=scene, priors=priors, unclassified=unclassified)
     if carve:
         route = carve_route(route)
     return dataclasses.replace(route, classify_s=round(time.perf_counter() - t0, 3))

@@ -106,6 +106,28 @@ def test_resolution_and_background_outside_the_zoos_route_to_scratch(zoo_dir, re
         assert {c.name for c in route.checks if not c.passed} == {failing}
 
 
+def test_a_scene_no_prior_applies_to_is_not_classified(zoo_dir: Path, tiny_scene: Path, monkeypatch):
+    """A photograph, or a 32 px scene outside the box of a zoo trained at 16 px: no prior can apply, so the classifier is
+    not asked (its answer could not change the route) and the route says why, with every prior's checks."""
+    import nerfmeta.route as route_module
+
+    zoo = load_zoo(zoo_dir)
+    photo = SceneFacts(box=FITS.box, resolution=(16, 16), background=None)
+    assert not route_module.any_prior_applies(_priors(zoo), photo) and route_module.any_prior_applies(_priors(zoo), FITS)
+    route = decide_route(None, zoo, 1, backbone="nerf", scene=photo, priors=_priors(zoo), unclassified=True)
+    assert route.route == "scratch" and route.category is None and "without classifying it" in route.reason
+    assert "opaque (no alpha): not an object scene like the zoo's (every prior)" in route.reason  # each note once
+    assert {c.prior for c in route.checks} == set(_priors(zoo)) and not any(c.passed for c in route.checks if c.name == "background")
+
+    def no_classifying(*args, **kwargs):
+        raise AssertionError("the classifier was asked")
+
+    monkeypatch.setattr(route_module, "classify_scene", no_classifying)
+    routed = route_module.route_scene(RunConfig(scene=str(tiny_scene), backbone="nerf"), zoo, 1)
+    assert routed.route == "scratch" and "without classifying it" in routed.reason
+    assert "resolution" in {c.name for c in routed.checks if not c.passed}  # 32 px views, a 16 px zoo
+
+
 def test_a_category_model_that_does_not_apply_falls_back_to_the_meta_init_that_does(zoo_dir: Path):
     zoo = load_zoo(zoo_dir)
     priors = _priors(zoo)
