@@ -337,6 +337,10 @@ def test_classify_without_a_classifier_asks_the_zoos_and_without_a_zoo_says_what
     assert json.loads(out) == direct and "the model zoo's classifier" in err
     monkeypatch.setenv("NERFMETA_ZOO", str(zoo_dir))  # what the shipped zoo is to a user
     assert main(["classify", scene]) == 0 and json.loads(capsys.readouterr().out) == direct
+    # the zoo's files are inputs: --json-out never replaces one of them
+    manifest = (zoo_dir / MANIFEST).read_bytes()
+    assert main(["classify", scene, "--json-out", str(zoo_dir / MANIFEST)]) == 2
+    assert "would replace a file of the input" in capsys.readouterr().err and (zoo_dir / MANIFEST).read_bytes() == manifest
     monkeypatch.setenv("NERFMETA_ZOO", "none")
     assert main(["classify", scene]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -39,9 +39,9 @@ def run(args: argparse.Namespace) -> int:
     from classifier.store import classify_views, load_classifier
     from nerfmeta.paths import check_output_file, write_output_json
 
-    json_out = (check_output_file(args.json_out, option="--json-out", inputs=(args.scene, args.classifier))
-                if args.json_out else None)  # before any work; never replaces a file of the inputs
-    folder = args.classifier if args.classifier is not None else zoo_classifier(args.zoo)
+    folder, zoo_root = (args.classifier, None) if args.classifier is not None else zoo_classifier(args.zoo)
+    json_out = (check_output_file(args.json_out, option="--json-out", inputs=(args.scene, folder, zoo_root))
+                if args.json_out else None)  # before the classifier loads; never replaces a file of the inputs (or their zoo)
     classifier = load_classifier(folder, device=args.device)
     if args.score is not None:
         classifier = classifier.with_score(args.score)
@@ -55,13 +55,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def zoo_classifier(zoo: str | None) -> str | None:
-    """The classifier folder of the zoo :func:`nerfmeta.zoo.open_zoo` picks (hash-checked), else None; says which."""
+def zoo_classifier(zoo: str | None) -> tuple[str | None, str | None]:
+    """(classifier folder, zoo folder) of the zoo :func:`nerfmeta.zoo.open_zoo` picks (hash-checked), each None when
+    there is none; says which."""
     from nerfmeta.zoo import open_zoo
 
     found = open_zoo(zoo)
     entry = None if found is None else found.classifier
     if entry is None:
-        return None
+        return None, None
     print(f"nerfmeta classify: the model zoo's classifier ({entry.path})", file=sys.stderr)
-    return str(entry.path)
+    return str(entry.path), str(found.root)
