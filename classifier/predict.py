@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -89,15 +90,19 @@ class ReferenceModel:
     between: torch.Tensor
     norm: torch.Tensor
 
+    @cached_property
+    def precision(self) -> torch.Tensor:
+        """(dim, dim) inverse of ``between`` in float64, computed once (every scene scored is measured under it)."""
+        return torch.linalg.inv(self.between.double())
+
     def z(self, descriptors: torch.Tensor) -> float:
         """A scene's reference score in units of the known scenes' spread. descriptors: (n_views, dim)."""
-        return float((reference_score(descriptors, self.means, self.between) - self.norm[0].double()) / self.norm[1].double())
+        return float((reference_score(descriptors, self.means, self.precision) - self.norm[0].double()) / self.norm[1].double())
 
 
-def reference_score(descriptors: torch.Tensor, means: torch.Tensor, between: torch.Tensor) -> torch.Tensor:
-    """Minus the squared Mahalanobis distance (under ``between``) of the scene's mean descriptor to the nearest class
-    mean (float64). descriptors: (n_views, dim); means: (n_classes, dim); between: (dim, dim)."""
-    precision = torch.linalg.inv(between.double())
+def reference_score(descriptors: torch.Tensor, means: torch.Tensor, precision: torch.Tensor) -> torch.Tensor:
+    """Minus the squared Mahalanobis distance (under ``precision``, the inverse covariance) of the scene's mean
+    descriptor to the nearest class mean (float64). descriptors: (n_views, dim); means: (n_classes, dim)."""
     return -mahalanobis_distances(descriptors.mean(dim=0, keepdim=True), means, precision)[0].min()
 
 

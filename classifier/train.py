@@ -604,7 +604,7 @@ def train_classifier(
     for cb in callbacks:
         cb(TrainEvent("calibrate", history["steps"], history["steps"], time_s=history["time_s"]))
     model.cpu()
-    fewest = min(sum(r.category == c for r in splits.train) for c in splits.categories)
+    fewest = fewest_scenes_per_class(train.labels, train.scene_index, len(splits.categories))
     trunk, reference_note = reference_trunk(config.reference, reference_skip_reason(config, fewest))
     calibration_start = time.perf_counter()
     stats, thresholds, metrics = calibrate(model, train, val, holdout_val, replace(config, device="cpu"), splits.categories, trunk)
