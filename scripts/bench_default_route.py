@@ -78,9 +78,14 @@ def make_scenes(names: list[str], tmp: Path) -> dict[str, tuple[Path, float, str
     return scenes
 
 
+def load_average() -> str:
+    """The 1 / 5 / 15 minute load averages, as the tables print them."""
+    return " / ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
 def fit_once(scene: Path, downscale: float, out: Path, arm: str, budget: float, seed: int) -> dict:
     """One fit in a fresh process: its summary, with the load average before it."""
-    load = " / ".join(f"{v:.1f}" for v in os.getloadavg())
+    load = load_average()
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--downscale", f"{downscale:g}",
            "--time-budget", f"{budget:g}", "--eval-every", "0", "--checkpoint-every", "0", "--seed", str(seed), *ARMS[arm]]
     with open(out.with_suffix(".log"), "w") as log:
@@ -113,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--write", action="store_true")
     args = p.parse_args(argv)
     rows, runs_lines, routes = [], [], {}
-    load_before = " / ".join(f"{v:.1f}" for v in os.getloadavg())
+    load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="bench_default_route_") as tmp:
         scenes = make_scenes(args.scenes.split(","), Path(tmp))
         for name, (scene, downscale, label) in scenes.items():
@@ -140,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         "```", "",
         f"Machine: {MACHINE}; date {datetime.date.today().isoformat()}; **median of {args.reps} runs** per arm (min-max in "
         f"brackets), seeds 0..{args.reps - 1}, arms interleaved with their order swapped every run; load average before "
-        f"{load_before}, after {' / '.join(f'{v:.1f}' for v in os.getloadavg())}. Default: `nerfmeta fit SCENE --out RUN "
+        f"{load_before}, after {load_average()}. Default: `nerfmeta fit SCENE --out RUN "
         f"--downscale D --time-budget {args.budget:g} --eval-every 0 --checkpoint-every 0` with the shipped zoo; scratch: the same "
         "with `--init scratch --backbone grid`. Test PSNR on all test views.", "",
         "| scene | default route | test PSNR, default (dB) | test PSNR, scratch grid (dB) | iterations (default / scratch) | "

@@ -295,8 +295,8 @@ def test_the_shipped_zoo_classifier_decides_with_fused_and_predicts_as_when_it_w
         views[i, 2] = views[i, 3] * ramp[:, None]
     prediction = classify_views(clf, views)
     assert prediction.category == "mug" and prediction.unknown and prediction.score_name == "fused"
-    assert prediction.score == pytest.approx(-35.76393311382475, rel=1e-5)
-    assert prediction.confidence == pytest.approx(0.8279129862785339, rel=1e-5)
+    assert prediction.score == pytest.approx(-35.76393311382475, rel=1e-6)
+    assert prediction.confidence == pytest.approx(0.8279129862785339, rel=1e-6)
 
 
 def test_mirrored_views_follow_the_views_and_survive_a_round_trip(tmp_path: Path):
