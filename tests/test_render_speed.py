@@ -131,17 +131,21 @@ def test_channels_last_copies_live_only_while_kept():
 
 
 def test_colour_mlp_in_pieces_equals_one_pass(monkeypatch):
-    """Without gradient the colour MLP runs its rows in pieces (cache-sized); the logits are those of one pass."""
+    """Without gradient the colour MLP runs its rows in pieces (cache-sized), in place; the logits are those of one
+    pass with gradient, and its inputs (features as the grid hands them over: a strided view) are left untouched."""
     import nerfmeta.fields.voxel_grid as voxel_grid
 
     torch.manual_seed(0)
     mlp = voxel_grid.ColorMLP(feature_dim=4, view_dim=9, width=16, depth=3)
     for p in mlp.parameters():
         torch.nn.init.normal_(p, std=0.5)
-    features, view = torch.randn(1001, 4), torch.randn(40, 9)
+    grid_values, view = torch.randn(7, 1001), torch.randn(40, 9)  # (C, N), as the grid's lookups return them
+    features = grid_values[3:].t()  # (N, 4), not contiguous
     ray_idx = torch.sort(torch.randint(0, 40, (1001,))).values
     whole = mlp(features, view, ray_idx)  # grad enabled: one pass
+    before = grid_values.clone(), view.clone()
     monkeypatch.setattr(voxel_grid, "MLP_PIECE_ROWS", 97)
     with torch.no_grad():
         pieces = mlp(features, view, ray_idx)
     torch.testing.assert_close(pieces, whole.detach(), rtol=0, atol=1e-6)
+    assert torch.equal(grid_values, before[0]) and torch.equal(view, before[1])
