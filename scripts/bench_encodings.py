@@ -2,11 +2,12 @@
 
 For every scene of a generated collection (one per category) and every encoding, one
 ``python -m nerfmeta fit SCENE --backbone sdf --set encoding=E --time-budget BUDGET`` in its own
-process (so ``peak_rss_mb`` is its own). The ground truth of every scene is sampled first; then the
-fits run back to back holding ``/work/wt/bench.lock`` (one benchmark at a time across the machine,
-acquired once: the lock is not fair, so taking it per fit could starve). Scenes are the outer loop and
-encodings the inner one, so the machine's load hits every encoding alike. After each fit, outside
-the timed part, the run is meshed at ``--resolution`` and compared with the scene's exact SDF
+process (so ``peak_rss_mb`` is its own), one torch thread each, ``--workers`` at a time (default 1: back to
+back). The ground truth of every scene is sampled first; with ``--lock FILE`` the fits run holding that
+lock (``flock``: one benchmark at a time across a shared machine, acquired once, as the lock is not fair
+and taking it per fit could starve). Scenes are the outer loop and encodings the inner one, so the
+machine's load hits every encoding alike. After all the fits, outside the timed part and with nothing
+else running, each run is meshed at ``--resolution`` and compared with the scene's exact SDF
 (``nerfmeta.geometry``: Chamfer as % of the ground truth's bounding-box diagonal, F-score at 1 %
 of it, normal consistency), and the mean ``|grad f|`` of the SDF is taken at points sampled on the
 true surface. Lego (``--lego``) gives PSNR/SSIM only (no ground-truth geometry). Writes
@@ -15,8 +16,8 @@ faces coloured by their distance to the true surface).
 
 Usage::
 
-    .venv/bin/python scripts/bench_encodings.py COLLECTION --out DIR [--budget 60] [--lego PATH]
-        [--encodings pe,fourier,hash,nffb,stylemod-nffb] [--batch-rays 512] [--set KEY=VALUE ...]
+    .venv/bin/python scripts/bench_encodings.py COLLECTION --out DIR [--budget 60] [--lego PATH] [--workers 2]
+        [--encodings pe,fourier,hash,nffb,stylemod-nffb] [--batch-rays 512] [--set KEY=VALUE ...] [--lock FILE]
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import statistics
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -44,11 +46,10 @@ from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame  # noqa: E4
 from nerfmeta.geometry.truth import sample_sdf_surface, scene_sdf_of  # noqa: E402
 
 ENCODINGS = ("pe", "fourier", "hash", "nffb", "stylemod-nffb")
-LOCK = "/work/wt/bench.lock"
 
 
 def fit(scene: Path, out: Path, encoding: str, args: argparse.Namespace, extra: list[str]) -> dict:
-    """One locked, time-budgeted fit; its summary plus the load average when it started."""
+    """One time-budgeted fit in its own process; its summary plus the load average when it started."""
     cmd = [sys.executable, "-m", "nerfmeta", "fit", str(scene), "--out", str(out), "--init", "scratch", "--backbone", "sdf",
            "--time-budget", f"{args.budget:g}", "--iters", str(args.iters), "--batch-rays", str(args.batch_rays),
            "--eval-every", "0", "--checkpoint-every", "0", "--eval-views", str(args.eval_views), "--renders", "1",
@@ -133,50 +134,56 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", type=int, default=128, help="marching-cubes corners per axis")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--iters", type=int, default=1000000, help="iterations per fit (the same for every encoding)")
-    parser.add_argument("--no-lock", dest="lock", action="store_false",
-                        help="do not take the bench lock: for a fixed-iteration quality study whose times are not benchmark figures")
+    parser.add_argument("--workers", type=int, default=1, help="fits at a time (one torch thread each)")
+    parser.add_argument("--lock", type=Path, default=None, metavar="FILE",
+                        help="hold this flock file while fitting (a machine shared with other benchmarks)")
+    parser.add_argument("--no-lock", dest="lock", action="store_const", const=None,
+                        help="take no lock (the default; kept for the commands recorded in BENCHMARKS.md)")
     args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error(f"--workers must be at least 1, got {args.workers}")
     encodings = args.encodings.split(",")
     args.out.mkdir(parents=True, exist_ok=False)
     collection = load_collection(args.collection)
     config = GeometryConfig(resolution=args.resolution, n_points=100000)
-    results, picture_rows, sdfs, diagonals, gts = [], [], {}, {}, {}
+    results, sdfs, diagonals, gts = [], {}, {}, {}
     for record in collection.scenes:
         sdf, box = scene_sdf_of(collection.scene_path(record))
         gts[record.name] = sample_sdf_surface(sdf, box, config.n_points, resolution=160, seed=1)
         sdfs[record.name], diagonals[record.name] = sdf, float(np.linalg.norm(gts[record.name].points.max(0) - gts[record.name].points.min(0)))
-    lock = open(LOCK, "a")
-    if args.lock:
-        print("waiting for", LOCK, flush=True)
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        print("lock taken at", time.strftime("%H:%M:%S"), flush=True)
-    for record in collection.scenes:
-        scene_dir, gt = collection.scene_path(record), gts[record.name]
-        meshes = []
-        for enc in encodings:
-            run = args.out / record.name / enc
-            run.parent.mkdir(parents=True, exist_ok=True)
-            summary = fit(scene_dir, run, enc, args, [])
-            geo, mesh = geometry_row(run, scene_dir, gt, config)
-            row = {"scene": record.name, "category": record.category, "encoding": enc, "psnr": summary["test_psnr"],
-                   "ssim": summary["test_ssim"], "iters": summary["iters"], "time_s": summary["time_s"],
-                   "peak_rss_mb": summary["peak_rss_mb"], "load": summary["load_average"], **geo}
-            print(json.dumps(row), flush=True)
-            results.append(row)
-            meshes.append((f"{enc}: {geo['chamfer_pct']:.2f}%", mesh))
-        picture_rows.append((record.name, meshes))
+    jobs = [(record.name, collection.scene_path(record), enc, []) for record in collection.scenes for enc in encodings]
     if args.lego is not None:
-        for enc in encodings:
-            run = args.out / "lego" / enc
-            run.parent.mkdir(parents=True, exist_ok=True)
-            summary = fit(args.lego, run, enc, args, ["--downscale", f"{args.lego_downscale:g}"])
-            row = {"scene": "lego", "category": "lego", "encoding": enc, "psnr": summary["test_psnr"], "ssim": summary["test_ssim"],
-                   "iters": summary["iters"], "time_s": summary["time_s"], "peak_rss_mb": summary["peak_rss_mb"],
-                   "load": summary["load_average"]}
-            print(json.dumps(row), flush=True)
-            results.append(row)
-    fcntl.flock(lock, fcntl.LOCK_UN)
-    lock.close()
+        jobs += [("lego", args.lego, enc, ["--downscale", f"{args.lego_downscale:g}"]) for enc in encodings]
+
+    def one(job: tuple) -> dict:
+        name, scene_dir, enc, extra = job
+        run = args.out / name / enc
+        run.parent.mkdir(parents=True, exist_ok=True)
+        summary = fit(scene_dir, run, enc, args, extra)
+        print(f"{name} {enc}: {summary['iters']} iterations, {summary['test_psnr']:.2f} dB", flush=True)
+        return summary
+
+    with open(args.lock, "a") if args.lock is not None else open(os.devnull) as lock:
+        if args.lock is not None:
+            print("waiting for", args.lock, flush=True)
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            print("lock taken at", time.strftime("%H:%M:%S"), flush=True)
+        with ThreadPoolExecutor(args.workers) as pool:
+            summaries = list(pool.map(one, jobs))
+    # the geometry after every fit has ended, so no timed fit shares the machine with it
+    meshes: dict[str, list] = {}
+    for (name, scene_dir, enc, _), summary in zip(jobs, summaries):
+        row = {"scene": name, "category": "lego" if name == "lego" else None, "encoding": enc, "psnr": summary["test_psnr"],
+               "ssim": summary["test_ssim"], "lpips": summary.get("test_lpips"), "iters": summary["iters"],
+               "time_s": summary["time_s"], "peak_rss_mb": summary["peak_rss_mb"], "load": summary["load_average"]}
+        if name != "lego":
+            row["category"] = next(r.category for r in collection.scenes if r.name == name)
+            geo, mesh = geometry_row(args.out / name / enc, scene_dir, gts[name], config)
+            row.update(geo)
+            meshes.setdefault(name, []).append((f"{enc}: {geo['chamfer_pct']:.2f}%", mesh))
+        print(json.dumps(row), flush=True)
+        results.append(row)
+    picture_rows = list(meshes.items())
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     (args.out / "table.md").write_text(table(results, encodings))
     picture(picture_rows, sdfs, diagonals, args.out / "meshes.png")
@@ -186,8 +193,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def table(results: list[dict], encodings: list[str]) -> str:
     """Median over the generated scenes per encoding, and lego's PSNR/SSIM."""
-    lines = ["| encoding | Chamfer (% diag), median [min..max] | F-score @1% | normal cons. | mean abs grad f at surface | PSNR (dB) | SSIM | iters | peak RSS (MB) | lego PSNR / SSIM |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| encoding | Chamfer (% diag), median [min..max] | F-score @1% | normal cons. | mean abs grad f at surface | PSNR (dB) | SSIM | "
+             "LPIPS | iters | optimisation s | peak RSS (MB) | lego PSNR / SSIM / LPIPS (iters) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for enc in encodings:
         rows = [r for r in results if r["encoding"] == enc and r["scene"] != "lego"]
         lego = [r for r in results if r["encoding"] == enc and r["scene"] == "lego"]
@@ -195,13 +203,18 @@ def table(results: list[dict], encodings: list[str]) -> str:
             continue
 
         def med(key: str, digits: int = 2) -> str:
-            return f"{statistics.median(r[key] for r in rows):.{digits}f}"
+            values = [r[key] for r in rows if r.get(key) is not None]
+            return f"{statistics.median(values):.{digits}f}" if values else "-"
+
+        def fmt(value: float | None, digits: int) -> str:
+            return "-" if value is None else f"{value:.{digits}f}"
 
         cham = [r["chamfer_pct"] for r in rows]
-        lego_txt = f"{lego[0]['psnr']:.2f} / {lego[0]['ssim']:.3f}" if lego else "-"
+        lego_txt = (f"{lego[0]['psnr']:.2f} / {lego[0]['ssim']:.3f} / {fmt(lego[0].get('lpips'), 3)} ({lego[0]['iters']})"
+                    if lego else "-")
         lines.append(f"| {enc} | {statistics.median(cham):.2f} [{min(cham):.2f}..{max(cham):.2f}] | {med('fscore', 3)} | "
-                     f"{med('normal_consistency', 3)} | {med('grad_norm', 3)} | {med('psnr')} | {med('ssim', 3)} | {med('iters', 0)} | "
-                     f"{med('peak_rss_mb', 0)} | {lego_txt} |")
+                     f"{med('normal_consistency', 3)} | {med('grad_norm', 3)} | {med('psnr')} | {med('ssim', 3)} | {med('lpips', 3)} | "
+                     f"{med('iters', 0)} | {med('time_s', 0)} | {med('peak_rss_mb', 0)} | {lego_txt} |")
     return "\n".join(lines) + "\n"
 
 
