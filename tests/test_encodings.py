@@ -44,6 +44,23 @@ def test_shapes_input_columns_and_gradients(name):
         assert p.grad is not None and p.grad.abs().sum() > 0, name
 
 
+@pytest.mark.parametrize("name", ENCODINGS)
+def test_every_encoding_takes_no_points(name):
+    """A batch can leave no sample to encode (an SDF fit whose rays all miss the marched band did, with the hash grid:
+    'cannot reshape tensor of 0 elements'); every encoding and the SDF built on it must give empty results."""
+    from nerfmeta.fields.sdf import SdfConfig, SdfField
+
+    enc = small(name)
+    x = torch.zeros(0, 3, requires_grad=True)
+    y = enc(x)
+    assert y.shape == (0, enc.out_dim)
+    y.sum().backward()
+    field = SdfField(SdfConfig(**{**SMALL.__dict__, "encoding": name}, depth=2, width=16, feature_dim=4),
+                     torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    out = field.evaluate(torch.zeros(0, 3))
+    assert out.sdf.shape == (0,) and out.grad.shape == (0, 3)
+
+
 def test_pe_values_at_known_points():
     enc = PositionalEncoding(PEConfig(2))
     y = enc(torch.tensor([[0.5, 0.0, -0.25]]))[0]

@@ -182,7 +182,7 @@ def interpolate_level(table: torch.Tensor, x: torch.Tensor, res: int) -> torch.T
     offsets = torch.tensor([[(corner >> a) & 1 for a in range(3)] for corner in range(8)], device=x.device)  # (8, 3)
     idx = corner_index(base.long()[None] + offsets[:, None], res, table.shape[0])  # (8, N)
     w = torch.where(offsets[:, None].bool(), frac[None], 1.0 - frac[None]).prod(-1)  # (8, N)
-    feats = table.index_select(0, idx.reshape(-1)).view(8, x.shape[0], -1).to(x.dtype)
+    feats = table.index_select(0, idx.reshape(-1)).view(8, x.shape[0], table.shape[1]).to(x.dtype)  # N may be 0
     return (w[..., None] * feats).sum(0)
 
 
