@@ -59,7 +59,10 @@ def fit(scene: Path, out: Path, encoding: str, args: argparse.Namespace, extra: 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "NERFMETA_ZOO": "none"}
     load = Path("/proc/loadavg").read_text().split()[:3]
     t0 = time.time()
-    subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if done.returncode != 0:  # a failed fit is a finding of the study: recorded, and the study goes on
+        lines = [line for line in done.stderr.replace("\r", "\n").splitlines() if line.strip()]
+        return {"error": lines[-1] if lines else f"exit status {done.returncode}", "load_average": load}
     summary = json.loads((out / "summary.json").read_text())
     summary["load_average"] = load
     summary["wall_s"] = round(time.time() - t0, 1)
@@ -160,7 +163,10 @@ def main(argv: list[str] | None = None) -> int:
         run = args.out / name / enc
         run.parent.mkdir(parents=True, exist_ok=True)
         summary = fit(scene_dir, run, enc, args, extra)
-        print(f"{name} {enc}: {summary['iters']} iterations, {summary['test_psnr']:.2f} dB", flush=True)
+        if "error" in summary:
+            print(f"{name} {enc}: FAILED: {summary['error']}", flush=True)
+        else:
+            print(f"{name} {enc}: {summary['iters']} iterations, {summary['test_psnr']:.2f} dB", flush=True)
         return summary
 
     with open(args.lock, "a") if args.lock is not None else open(os.devnull) as lock:
@@ -173,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
     # the geometry after every fit has ended, so no timed fit shares the machine with it
     meshes: dict[str, list] = {}
     for (name, scene_dir, enc, _), summary in zip(jobs, summaries):
+        if "error" in summary:
+            results.append({"scene": name, "encoding": enc, "error": summary["error"], "load": summary["load_average"]})
+            print(json.dumps(results[-1]), flush=True)
+            continue
         row = {"scene": name, "category": "lego" if name == "lego" else None, "encoding": enc, "psnr": summary["test_psnr"],
                "ssim": summary["test_ssim"], "lpips": summary.get("test_lpips"), "iters": summary["iters"],
                "time_s": summary["time_s"], "peak_rss_mb": summary["peak_rss_mb"], "load": summary["load_average"]}
@@ -186,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     picture_rows = list(meshes.items())
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     (args.out / "table.md").write_text(table(results, encodings))
-    picture(picture_rows, sdfs, diagonals, args.out / "meshes.png")
+    if picture_rows:
+        picture(picture_rows, sdfs, diagonals, args.out / "meshes.png")
     print(table(results, encodings))
     return 0
 
@@ -196,6 +207,8 @@ def table(results: list[dict], encodings: list[str]) -> str:
     lines = ["| encoding | Chamfer (% diag), median [min..max] | F-score @1% | normal cons. | mean abs grad f at surface | PSNR (dB) | SSIM | "
              "LPIPS | iters | optimisation s | peak RSS (MB) | lego PSNR / SSIM / LPIPS (iters) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    failed = [r for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
     for enc in encodings:
         rows = [r for r in results if r["encoding"] == enc and r["scene"] != "lego"]
         lego = [r for r in results if r["encoding"] == enc and r["scene"] == "lego"]
@@ -215,6 +228,8 @@ def table(results: list[dict], encodings: list[str]) -> str:
         lines.append(f"| {enc} | {statistics.median(cham):.2f} [{min(cham):.2f}..{max(cham):.2f}] | {med('fscore', 3)} | "
                      f"{med('normal_consistency', 3)} | {med('grad_norm', 3)} | {med('psnr')} | {med('ssim', 3)} | {med('lpips', 3)} | "
                      f"{med('iters', 0)} | {med('time_s', 0)} | {med('peak_rss_mb', 0)} | {lego_txt} |")
+    if failed:
+        lines += [""] + [f"Failed: {r['scene']} with {r['encoding']}: {r['error']}" for r in failed]
     return "\n".join(lines) + "\n"
 
 
