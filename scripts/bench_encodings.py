@@ -10,7 +10,7 @@ machine's load hits every encoding alike. After all the fits, outside the timed 
 else running, each run is meshed at ``--resolution`` and compared with the scene's exact SDF
 (``nerfmeta.geometry``: Chamfer as % of the ground truth's bounding-box diagonal, F-score at 1 %
 of it, normal consistency), and the mean ``|grad f|`` of the SDF is taken at points sampled on the
-true surface. Lego (``--lego``) gives PSNR/SSIM only (no ground-truth geometry). Writes
+true surface. Lego (``--lego``) gives PSNR/SSIM/LPIPS only (no ground-truth geometry). Writes
 ``OUT/results.json``, ``OUT/table.md`` and ``OUT/meshes.png`` (each scene's meshes side by side,
 faces coloured by their distance to the true surface).
 

@@ -339,7 +339,7 @@ class ColorMLP(nn.Module):
                 x = lin(F.relu(x))
             return x
         # test time: the feature product added into the gathered per-ray part and the ReLUs in place, no
-        # intermediate copies (a quarter of the MLP's time on beer, BENCHMARKS.md *Faster test renders (session 23)*)
+        # intermediate copies (a quarter of the MLP's time on beer; BENCHMARKS.md, #16 session 23)
         x = per_ray.addmm_(features, w_feat.t())
         for lin in self.linears[1:]:
             x = lin(x.relu_())
