@@ -154,12 +154,13 @@ def main(argv: list[str] | None = None) -> int:
         sdf, box = scene_sdf_of(collection.scene_path(record))
         gts[record.name] = sample_sdf_surface(sdf, box, config.n_points, resolution=160, seed=1)
         sdfs[record.name], diagonals[record.name] = sdf, float(np.linalg.norm(gts[record.name].points.max(0) - gts[record.name].points.min(0)))
-    jobs = [(record.name, collection.scene_path(record), enc, []) for record in collection.scenes for enc in encodings]
+    jobs = [(record.name, record.category, collection.scene_path(record), enc, []) for record in collection.scenes
+            for enc in encodings]
     if args.lego is not None:
-        jobs += [("lego", args.lego, enc, ["--downscale", f"{args.lego_downscale:g}"]) for enc in encodings]
+        jobs += [("lego", "lego", args.lego, enc, ["--downscale", f"{args.lego_downscale:g}"]) for enc in encodings]
 
     def one(job: tuple) -> dict:
-        name, scene_dir, enc, extra = job
+        name, _, scene_dir, enc, extra = job
         run = args.out / name / enc
         run.parent.mkdir(parents=True, exist_ok=True)
         summary = fit(scene_dir, run, enc, args, extra)
@@ -178,16 +179,15 @@ def main(argv: list[str] | None = None) -> int:
             summaries = list(pool.map(one, jobs))
     # the geometry after every fit has ended, so no timed fit shares the machine with it
     meshes: dict[str, list] = {}
-    for (name, scene_dir, enc, _), summary in zip(jobs, summaries):
+    for (name, category, scene_dir, enc, _), summary in zip(jobs, summaries):
         if "error" in summary:
             results.append({"scene": name, "encoding": enc, "error": summary["error"], "load": summary["load_average"]})
             print(json.dumps(results[-1]), flush=True)
             continue
-        row = {"scene": name, "category": "lego" if name == "lego" else None, "encoding": enc, "psnr": summary["test_psnr"],
+        row = {"scene": name, "category": category, "encoding": enc, "psnr": summary["test_psnr"],
                "ssim": summary["test_ssim"], "lpips": summary.get("test_lpips"), "iters": summary["iters"],
                "time_s": summary["time_s"], "peak_rss_mb": summary["peak_rss_mb"], "load": summary["load_average"]}
         if name != "lego":
-            row["category"] = next(r.category for r in collection.scenes if r.name == name)
             geo, mesh = geometry_row(args.out / name / enc, scene_dir, gts[name], config)
             row.update(geo)
             meshes.setdefault(name, []).append((f"{enc}: {geo['chamfer_pct']:.2f}%", mesh))
