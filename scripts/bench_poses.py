@@ -15,8 +15,9 @@ Parts (run under ``flock /work/wt/bench.lock``; each records the load average be
 * ``collection``: a ``nerfmeta make-collection`` chair at 256 px (its 40 training views, poses
   removed): whether the generated objects carry enough texture for SIFT.
 * ``beer``: ``../shared/data/real/beer/images`` (71 frames, 720 x 1280) copied without
-  ``poses_bounds.npy``; ``nerfmeta poses`` at ``--max-side`` 640, with sequential and with
-  exhaustive matching (``--beer-matchers``); views registered, rotation and centre
+  ``poses_bounds.npy``; ``nerfmeta poses`` at ``--max-side`` 640, with sequential matching of
+  neighbours only (the default), with COLMAP's far pairs too, and with exhaustive matching
+  (``--beer-matchers``); views registered, the turn summed over steps of at most 90 degrees, rotation and centre
   errors against the COLMAP poses it ships (``poses_bounds.npy`` converted by nerfmeta's LLFF
   parser's ``llff_to_opengl``): after one similarity over all views, and, since both pose sets put
   a few frames of the walk on the wrong side of the can (consecutive frames more than 90 degrees
@@ -49,7 +50,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 import sfm_scenes  # noqa: E402
 
 from nerfmeta.data.llff import llff_to_opengl  # noqa: E402
-from nerfmeta.data.sfm import SfmConfig, compute_poses  # noqa: E402
+from nerfmeta.data.sfm import SfmConfig, compute_poses, rotation_steps_deg  # noqa: E402
 
 BEER = ROOT.parent / "shared" / "data" / "real" / "beer"
 HEADING = "## Poses from photos (#16)"
@@ -135,8 +136,7 @@ def collection(work: Path) -> dict:
 
 def step_rotations_deg(poses: np.ndarray) -> np.ndarray:
     """(n - 1,) rotation angle between consecutive cameras (a video's frames turn a few degrees each)."""
-    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
-    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return rotation_steps_deg(poses[:, :3, :3])
 
 
 def relative_rotation_errors_deg(estimated: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -163,6 +163,14 @@ def shipped_beer_poses() -> dict[str, np.ndarray]:
     return dict(zip(sorted(p.name for p in (BEER / "images").iterdir()), poses))
 
 
+BEER_MATCHERS = {
+    "sequential": {"matcher": "sequential"},  # neighbours only: each frame with the next 10
+    "sequential-far": {"matcher": "sequential", "far_pairs": True},  # the ones 1, 2, 4, ... 512 later (COLMAP's default)
+    "exhaustive": {"matcher": "exhaustive"},
+}
+"""The ``--beer-matchers`` choices: :class:`SfmConfig` fields."""
+
+
 def beer(work: Path, max_side: int, matcher: str) -> dict:
     photos = work / "beer_photos"
     shutil.rmtree(photos, ignore_errors=True)
@@ -171,7 +179,7 @@ def beer(work: Path, max_side: int, matcher: str) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     before = load()
     t0 = time.perf_counter()
-    result = compute_poses(photos, out, SfmConfig(max_side=max_side, matcher=matcher, min_registered=0.5))
+    result = compute_poses(photos, out, SfmConfig(max_side=max_side, min_registered=0.5, **BEER_MATCHERS[matcher]))
     wall = time.perf_counter() - t0
     true = shipped_beer_poses()
     poses = sfm_poses(out)
@@ -185,6 +193,8 @@ def beer(work: Path, max_side: int, matcher: str) -> dict:
             "unregistered": list(result.unregistered), "global": pose_report(est, ref),
             "jumps_sfm": [names[i + 1] for i in np.flatnonzero(step_rotations_deg(est) > 90)],
             "jumps_shipped": [names[i + 1] for i in np.flatnonzero(step_rotations_deg(ref) > 90)],
+            "turned_sfm_deg": float(step_rotations_deg(est)[step_rotations_deg(est) <= 90].sum()),
+            "turned_shipped_deg": float(step_rotations_deg(ref)[step_rotations_deg(ref) <= 90].sum()),
             "step_rotation_error_median_deg": float(np.median(rel)), "step_rotation_error_p90_deg": float(np.percentile(rel, 90)),
             "longest_segment": [names[longest[0]], names[longest[1] - 1]],
             "longest_segment_errors": pose_report(est[longest[0]:longest[1]], ref[longest[0]:longest[1]])}
@@ -197,7 +207,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--iters", type=int, default=400, help="fit length for the SfM-vs-true comparison (0: none)")
     parser.add_argument("--beer-max-side", type=int, default=640)
-    parser.add_argument("--beer-matchers", default="sequential,exhaustive", help="comma-separated: sequential, exhaustive")
+    parser.add_argument("--beer-matchers", default="sequential,sequential-far,exhaustive",
+                        help=f"comma-separated, of: {', '.join(BEER_MATCHERS)}")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     results = {}

@@ -21,7 +21,7 @@ import sfm_scenes  # noqa: E402
 
 from nerfmeta.cli import main  # noqa: E402
 from nerfmeta.data.registry import load_scene  # noqa: E402
-from nerfmeta.data.sfm import SfmConfig, cached_poses, compute_poses, prepare_photo  # noqa: E402
+from nerfmeta.data.sfm import SfmConfig, cached_poses, compute_poses, prepare_photo, reconstruct  # noqa: E402
 from nerfmeta.errors import SceneError  # noqa: E402
 
 HEIGHT, WIDTH, VIEWS, TURN = 192, 256, 10, 0.4
@@ -72,6 +72,74 @@ def test_written_scene_loads_through_the_registry(solved) -> None:
     assert sorted(p.name for p in (out / "images").iterdir()) == sorted(result.registered)
     report = json.loads((out / "sfm.json").read_text())
     assert report["registered"] == list(result.registered) and report["config"]["max_side"] == 1600
+    assert result.jumps == () and report["jumps"] == []  # the arc is a walk of 16-degree steps, kept whole
+    assert result.matcher == report["matcher"] == "exhaustive" and report["config"]["matcher"] == "auto"
+
+
+def _first_model_folds(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Make the first model's walk look folded at its fourth photo (what every pair does on beer); the matchers used."""
+    import nerfmeta.data.sfm as sfm
+
+    real, seen = sfm.model_jumps, []
+
+    def jumps(model, names):
+        seen.append(names)
+        return [names[3]] if len(seen) == 1 else real(model, names)
+
+    monkeypatch.setattr(sfm, "model_jumps", jumps)
+    return seen
+
+
+def test_auto_matches_neighbours_when_every_pair_folds_a_walk(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    folder, true = arc
+    seen = _first_model_folds(monkeypatch)
+    result = compute_poses(folder, tmp_path / "scene", SfmConfig(threads=1))
+    assert len(seen) == 2 and result.matcher == "sequential" and result.jumps == ()
+    estimated = np.array([f["transform_matrix"] for f in json.loads((tmp_path / "scene" / "transforms.json").read_text())["frames"]])
+    rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
+    assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE
+    assert json.loads((tmp_path / "scene" / "sfm.json").read_text())["matcher"] == "sequential"
+
+
+def test_a_chosen_matcher_is_kept_and_its_fold_named(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+    folder, _ = arc
+    seen = _first_model_folds(monkeypatch)
+    result = compute_poses(folder, tmp_path / "scene", SfmConfig(threads=1, matcher="exhaustive"))
+    assert len(seen) == 1 and result.matcher == "exhaustive" and result.jumps == (seen[0][3],)
+    assert f"more than 90 degrees from the previous photo at {seen[0][3]}" in caplog.text and "--matcher sequential" in caplog.text
+
+
+@pytest.mark.parametrize(("config", "offsets"), [
+    (SfmConfig(threads=1, matcher="sequential", overlap=2), {1, 2}),
+    (SfmConfig(threads=1, matcher="sequential", overlap=3, far_pairs=True), {1, 2, 4}),  # 2^k, k < 3
+    (SfmConfig(threads=1), set(range(1, VIEWS))),
+])
+def test_which_photos_are_matched(arc, tmp_path: Path, config: SfmConfig, offsets: set[int]) -> None:
+    import pycolmap
+
+    folder, _ = arc
+    names = sorted(p.name for p in folder.iterdir())
+    reconstruct(folder, names, tmp_path, config, lambda *_: None, {})
+    database = pycolmap.Database.open(tmp_path / "database.db")
+    try:
+        name_of = {image.image_id: image.name for image in database.read_all_images()}
+        pairs, _ = database.read_all_matches()
+    finally:
+        database.close()
+    found = {abs(names.index(name_of[a]) - names.index(name_of[b])) for a, b in map(pycolmap.pair_id_to_image_pair, pairs)}
+    assert found == offsets
+
+
+def test_sequential_matching_of_neighbours_only(arc, tmp_path: Path) -> None:
+    folder, true = arc
+    result = compute_poses(folder, tmp_path / "scene", SfmConfig(threads=1, matcher="sequential", overlap=2))
+    doc = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    estimated = np.array([f["transform_matrix"] for f in doc["frames"]])
+    rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
+    assert len(result.registered) == VIEWS and result.jumps == ()
+    assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE
+    assert json.loads((tmp_path / "scene" / "sfm.json").read_text())["config"]["overlap"] == 2
 
 
 def test_out_that_is_not_ours_is_refused(arc, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -11,6 +11,7 @@ import pytest
 from nerfmeta.data.sfm import (
     SfmConfig,
     camera_from_colmap,
+    jump_advice,
     colmap_world_to_camera,
     matrix_to_quaternion,
     near_far_from_depths,
@@ -19,6 +20,8 @@ from nerfmeta.data.sfm import (
     WORLD_FROM_COLMAP,
     prepared_size,
     quaternion_to_matrix,
+    rotation_steps_deg,
+    walk_jumps,
 )
 from nerfmeta.errors import SceneError
 
@@ -121,3 +124,36 @@ def test_prepared_size() -> None:
     assert prepared_size(1280, 720, 1600) == (1280, 720)
     assert prepared_size(3000, 4000, 1600) == (1200, 1600)
     assert prepared_size(1000, 10, 100) == (100, 1)
+
+
+def _turns_about_z(degrees: list[float]) -> np.ndarray:
+    a = np.radians(np.asarray(degrees, dtype=np.float64))
+    c, s = np.cos(a), np.sin(a)
+    return np.stack([np.stack([c, -s, 0 * a], -1), np.stack([s, c, 0 * a], -1), np.stack([0 * a, 0 * a, 1 + 0 * a], -1)], 1)
+
+
+def test_rotation_steps_between_neighbours() -> None:
+    assert rotation_steps_deg(_turns_about_z([0, 10, 30, 25])) == pytest.approx([10, 20, 5])
+    assert rotation_steps_deg(_turns_about_z([0, 180])) == pytest.approx([180])
+
+
+def test_walk_jumps_name_a_folded_stretch() -> None:
+    # a walk of 9-degree steps whose frames 8-13 were put a half turn away, as a fold of look-alike sides does
+    angles = [9.0 * i + (180.0 if 8 <= i < 14 else 0.0) for i in range(24)]
+    assert walk_jumps(_turns_about_z(angles)) == [8, 14]
+    assert walk_jumps(_turns_about_z([9.0 * i for i in range(24)])) == []  # a whole walk (past 360 degrees too)
+
+
+def test_photos_in_no_order_have_no_walk() -> None:
+    rng = np.random.default_rng(0)
+    rotations = np.array([quaternion_to_matrix(q / np.linalg.norm(q)) for q in rng.normal(size=(30, 4))])
+    assert np.median(rotation_steps_deg(rotations)) > 30 and walk_jumps(rotations) == []
+    assert walk_jumps(_turns_about_z([0, 170])) == []  # two photos are no walk
+
+
+def test_jump_advice_names_the_photos_and_the_option() -> None:
+    names = [f"{i:04d}.jpg" for i in range(8)]
+    assert "0000.jpg, 0001.jpg" in jump_advice(names, SfmConfig()) and "and 2 more" in jump_advice(names, SfmConfig())
+    assert "--matcher sequential" in jump_advice(names[:1], SfmConfig())
+    assert "--no-far-pairs" in jump_advice(names[:1], SfmConfig(matcher="sequential", far_pairs=True))
+    assert "smaller --overlap than 10" in jump_advice(names[:1], SfmConfig(matcher="sequential"))

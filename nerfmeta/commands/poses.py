@@ -47,7 +47,7 @@ def add_sfm_options(parser: argparse.ArgumentParser) -> None:
     """The :class:`SfmConfig` options (shared with ``nerfmeta fit PHOTOS``)."""
     options.add_config_options(parser, SfmConfig, metavars={"max_side": "PX", "max_features": "N", "min_registered": "F",
                                                             "threads": "N", "seed": "S", "camera_model": "MODEL",
-                                                            "matcher": "KIND"})
+                                                            "matcher": "KIND", "overlap": "N"})
 
 
 def sfm_config_from(args: argparse.Namespace) -> SfmConfig:

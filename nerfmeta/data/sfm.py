@@ -7,12 +7,16 @@
     SCENE/images/NAME            the photos as fitted: EXIF orientation applied, longest side at most
                                  ``max_side``, undistorted when the camera model has distortion
     SCENE/colmap/                the sparse model those poses come from (cameras/images/points3D.bin)
-    SCENE/sfm.json               what happened: photos, registered, unregistered, reprojection error, seconds per phase
+    SCENE/sfm.json               what happened: photos, registered, unregistered, reprojection error, seconds per phase,
+                                 the matcher kept and any jumps of a walk left
 
 The phases (:func:`compute_poses`): read every photo (one line naming a file Pillow cannot read,
-or photos of different sizes) and write the prepared copies; SIFT features; matching (exhaustive, or
-sequential for a video's frames); incremental mapping (the largest model is kept); undistortion;
-conversion. No vocabulary tree is used (nothing is downloaded).
+or photos of different sizes) and write the prepared copies; SIFT features; matching (every pair, or
+neighbours in file-name order for a video's frames); incremental mapping (the largest model is kept);
+undistortion; conversion. No vocabulary tree is used (nothing is downloaded). The default matcher,
+``auto``, matches every pair and, when the model folds a walk (:func:`walk_jumps`: neighbours more than
+90 degrees apart, as look-alike sides of a symmetric scene make it), matches neighbours only, reusing
+the features, and keeps the model that folds less.
 
 Conventions (:func:`opengl_camera_to_world`): COLMAP stores world-to-camera ``(q, t)`` with the
 OpenCV camera (x right, y down, looking along +z); nerfmeta, like nerfstudio, uses OpenGL
@@ -34,7 +38,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator, Literal, Sequence
 
@@ -55,6 +59,10 @@ REPORT = "sfm.json"
 IMAGES = "images"
 COLMAP = "colmap"
 MIN_PHOTOS = 3
+WALK_STEP_DEG = 30.0
+"""Photos whose median turn between file-name neighbours is at most this are a walk (a video's frames)."""
+JUMP_DEG = 90.0
+"""A turn above this between neighbours of a walk is a jump (:func:`walk_jumps`)."""
 """Fewest photos structure from motion is attempted on (two give a pair, not a scene to fit)."""
 WORLD_FROM_COLMAP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """The rotation applied to COLMAP's world, as nerfstudio's ``colmap_to_json`` applies it (rows 0, 2, 1; the last negated)."""
@@ -79,8 +87,16 @@ class SfmConfig:
 
     max_side: int = bounded(1600, low=16)
     """Longest image side used (larger photos are downscaled on load, area filter); the written images have it."""
-    matcher: Literal["exhaustive", "sequential"] = "exhaustive"
-    """Which pairs are matched: every pair, or neighbours in file-name order (for a video's frames; faster)."""
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Which pairs are matched: every pair, or neighbours in file-name order (for a video's frames; faster); ``auto``:
+    every pair, then neighbours when that folds a walk (the camera turning over 90 degrees between neighbours)."""
+    overlap: int = bounded(10, low=1)
+    """Sequential matcher: each photo is matched with the next ``overlap`` photos in file-name order."""
+    far_pairs: bool = False
+    """Sequential matcher: match each photo with the ones 1, 2, 4, ... 2^(overlap - 1) photos later instead of the next
+    ``overlap`` (COLMAP's quadratic overlap, its default). Off by default: on a walk round a symmetric scene (a can on
+    square tiles) those far pairs match look-alike views from other sides and fold the reconstruction; the neighbours
+    alone keep a video's walk whole."""
     camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
     """COLMAP camera model shared by all photos; a model with distortion is undistorted to PINHOLE images."""
     max_features: int = bounded(8192, low=64)
@@ -201,6 +217,26 @@ def near_far_from_depths(depths: Sequence[np.ndarray], *, margin: float = 0.1) -
     near = float(np.percentile(every, 0.1)) * (1 - margin)
     far = float(np.percentile(every, 99.9)) * (1 + margin)
     return near, max(far, near * 1.01)
+
+
+def rotation_steps_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angles (degrees) of the rotations between consecutive ``(N, 3, 3)`` camera rotations (``N - 1`` of them)."""
+    relative = np.einsum("nij,nkj->nik", rotations[1:], rotations[:-1])
+    cos = (np.trace(relative, axis1=1, axis2=2) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def walk_jumps(rotations: np.ndarray, *, walk_deg: float = WALK_STEP_DEG, jump_deg: float = JUMP_DEG) -> list[int]:
+    """Indices ``i`` where photos ``i - 1 -> i`` of a walk turn by more than ``jump_deg``.
+
+    A walk is a sequence whose median step is at most ``walk_deg`` (a video's frames in file-name
+    order); photos in no particular order have no walk, and no jumps are reported for them. A jump in
+    a walk is almost always a reconstruction that folded look-alike views from different sides.
+    """
+    steps = rotation_steps_deg(np.asarray(rotations, dtype=np.float64))
+    if len(steps) < 2 or np.median(steps) > walk_deg:
+        return []
+    return [int(i) + 1 for i in np.flatnonzero(steps > jump_deg)]
 
 
 def photo_hash(paths: Sequence[Path], config: SfmConfig) -> str:
@@ -326,10 +362,14 @@ class SfmResult:
     """Sparse 3-D points."""
     seconds: dict[str, float]
     """Wall-clock time per phase."""
+    matcher: str = "exhaustive"
+    """The matcher whose model was kept (``auto`` resolves to ``exhaustive`` or ``sequential``)."""
+    jumps: tuple[str, ...] = ()
+    """Photos of a walk whose camera turns by more than :data:`JUMP_DEG` from the previous one (:func:`walk_jumps`)."""
 
     def as_json(self) -> dict:
         return {**asdict(self), "scene": str(self.scene), "registered": list(self.registered),
-                "unregistered": list(self.unregistered)}
+                "unregistered": list(self.unregistered), "jumps": list(self.jumps)}
 
 
 def _largest_model(models: dict) -> "object | None":
@@ -337,35 +377,49 @@ def _largest_model(models: dict) -> "object | None":
 
 
 def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfig, progress: Progress,
-                seconds: dict[str, float]):
+                seconds: dict[str, float], *, features: Path | None = None):
     """Features, matches and incremental mapping of ``names`` in ``images``; the largest model (or None).
 
-    ``work`` receives COLMAP's database and models; ``seconds`` gets the time of each phase.
+    ``work`` receives COLMAP's database and models; ``seconds`` adds up the time of each phase.
+    ``features``: an earlier run's database whose features are reused (its matches are dropped).
+    ``config.matcher`` is ``exhaustive`` or ``sequential`` here (:func:`compute_poses` resolves ``auto``).
     """
     import pycolmap
 
     database = work / "database.db"
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = config.camera_model
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = config.threads
-    extraction.sift.max_num_features = config.max_features
     t0 = time.perf_counter()
     progress("features", 0, 1)
-    pycolmap.extract_features(database, images, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    if features is not None:
+        shutil.copyfile(features, database)
+        db = pycolmap.Database.open(database)
+        try:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        finally:
+            db.close()
+    else:
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = config.camera_model
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = config.threads
+        extraction.sift.max_num_features = config.max_features
+        pycolmap.extract_features(database, images, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
     progress("features", 1, 1)
-    seconds["features"] = time.perf_counter() - t0
+    seconds["features"] = seconds.get("features", 0.0) + time.perf_counter() - t0
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = config.threads
     t0 = time.perf_counter()
     progress("matching", 0, 1)
     if config.matcher == "sequential":
-        pycolmap.match_sequential(database, matching_options=matching, device=pycolmap.Device.cpu)
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = config.overlap
+        pairing.quadratic_overlap = config.far_pairs
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
     else:
         pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
     progress("matching", 1, 1)
-    seconds["matching"] = time.perf_counter() - t0
+    seconds["matching"] = seconds.get("matching", 0.0) + time.perf_counter() - t0
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = config.threads
     mapping.random_seed = config.seed
@@ -381,7 +435,7 @@ def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfi
     sparse = work / "sparse"
     sparse.mkdir()
     models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
-    seconds["mapping"] = time.perf_counter() - t0
+    seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t0
     model = _largest_model(models)
     progress("mapping", 0 if model is None else model.num_reg_images(), len(names))
     return model
@@ -421,6 +475,28 @@ def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
            "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, **camera.distortion,
            "near": near, "far": far, "applied_transform": applied.tolist(), "frames": frames}
     return doc, camera
+
+
+def model_jumps(model, names: Sequence[str]) -> list[str]:
+    """The photos of ``names`` (registered in ``model``, in file-name order) where a walk jumps (:func:`walk_jumps`)."""
+    by_name = {image.name: image for image in model.images.values() if image.has_pose}
+    rotations = np.array([np.asarray(by_name[name].cam_from_world().rotation.matrix()) for name in names])
+    return [names[i] for i in walk_jumps(rotations)]
+
+
+def jump_advice(jumps: Sequence[str], config: SfmConfig) -> str:
+    """One line on the jumps of a walk (:func:`walk_jumps`) and which options keep the walk whole."""
+    shown = ", ".join(jumps[:6]) + (f" and {len(jumps) - 6} more" if len(jumps) > 6 else "")
+    if config.matcher == "exhaustive":
+        fix = "--matcher sequential (neighbours only)"
+    elif config.matcher == "auto":  # neighbours only folded it too (or registered fewer photos)
+        fix = f"--matcher sequential with a smaller --overlap than {config.overlap}"
+    elif config.far_pairs:
+        fix = "--no-far-pairs"
+    else:
+        fix = f"a smaller --overlap than {config.overlap}"
+    return (f"the camera turns by more than {JUMP_DEG:g} degrees from the previous photo at {shown}: if the photos are "
+            f"a walk's frames in name order, the reconstruction folded look-alike views from different sides; try {fix}")
 
 
 def _unregistered_error(folder: Path, missing: Sequence[str], total: int, config: SfmConfig) -> SceneError:
@@ -466,11 +542,25 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             prepare_photo(path, prepared / path.name, size)
         progress("photos", len(paths), len(paths))
         seconds["photos"] = time.perf_counter() - t0
-        model = reconstruct(prepared, names, work, config, progress, seconds)
+        matcher = "exhaustive" if config.matcher == "auto" else config.matcher
+        attempt = work / matcher
+        attempt.mkdir()
+        model = reconstruct(prepared, names, attempt, replace(config, matcher=matcher), progress, seconds)
         registered = [] if model is None else sorted(i.name for i in model.images.values() if i.has_pose)
         missing = [n for n in names if n not in set(registered)]
         if len(registered) < MIN_PHOTOS or len(registered) < config.min_registered * len(names) - 1e-9:
             raise _unregistered_error(folder, missing, len(names), config)
+        jumps = model_jumps(model, registered)
+        if jumps and config.matcher == "auto":  # a folded walk: match neighbours only, keep it if it folds less
+            log.info("%s: every pair folded the walk at %s; matching neighbours only", folder, ", ".join(jumps))
+            retry = work / "sequential"
+            retry.mkdir()
+            again = reconstruct(prepared, names, retry, replace(config, matcher="sequential"), progress, seconds,
+                                features=attempt / "database.db")
+            kept = [] if again is None else sorted(i.name for i in again.images.values() if i.has_pose)
+            if len(kept) >= len(registered) and len(kept_jumps := model_jumps(again, kept)) < len(jumps):
+                model, registered, matcher, jumps = again, kept, "sequential", kept_jumps
+                missing = [n for n in names if n not in set(registered)]
         if missing:
             log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
         t0 = time.perf_counter()
@@ -485,9 +575,11 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             shutil.copyfile(image_dir / name, run.dir / IMAGES / name)
         (run.dir / COLMAP).mkdir()
         model.write_binary(str(run.dir / COLMAP))
+        if jumps:
+            log.warning("%s: %s", folder, jump_advice(jumps, config))
         result = SfmResult(run.path, len(names), tuple(registered), tuple(missing),
                            float(model.compute_mean_reprojection_error()), int(model.num_points3D()),
-                           {k: round(v, 3) for k, v in seconds.items()})
+                           {k: round(v, 3) for k, v in seconds.items()}, matcher, tuple(jumps))
         write_json(run.dir / REPORT, {**result.as_json(), "config": asdict(config)})
         write_json(run.dir / TRANSFORMS, doc)
     return result
