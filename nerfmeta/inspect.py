@@ -17,6 +17,7 @@ from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.normalize import describe
 from nerfmeta.data.registry import load_scene_with
 from nerfmeta.data.scene import Normalization, Scene
+from nerfmeta.data.sfm import walk_jumps
 from nerfmeta.paths import check_output_folder, os_errors_named
 from nerfmeta.io import atomic_path, write_json
 from nerfmeta.render.rays import frustum_corners
@@ -71,6 +72,9 @@ class SceneSummary:
     normalization: dict[str, float | list[float]]
     """What loading applied, ``{"scale", "offset"}`` with ``loaded = scale * file + offset``;
     ``near``, ``far``, ``bounds`` and ``camera_distance`` above are in the loaded frame."""
+    pose_jumps: list[int]
+    """Views (file order) of a walk whose camera turns by more than 90 degrees from the previous view: where the poses
+    folded a video's walk (:func:`nerfmeta.data.sfm.walk_jumps`); empty for photos in no particular order."""
 
 
 def summarize_scene(scene: Scene) -> SceneSummary:
@@ -101,6 +105,7 @@ def summarize_scene(scene: Scene) -> SceneSummary:
         camera_distance=(float(dist.min()), float(dist.median()), float(dist.max())),
         scene_type=scene.scene_type.as_json(),
         normalization=scene.normalization.as_json(),
+        pose_jumps=walk_jumps(scene.poses[:, :3, :3].double().numpy()),
     )
 
 
@@ -127,6 +132,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("background", bg),
         ("camera distance", "to bounds centre: min {:.3f}, median {:.3f}, max {:.3f}".format(*s.camera_distance)),
         ("normalisation", describe(Normalization(float(s.normalization["scale"]), tuple(s.normalization["offset"])))),  # type: ignore[arg-type]
+        ("pose jumps", _jumps(s.pose_jumps)),
     ]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
@@ -228,6 +234,13 @@ def inspect_scene(
             save_png(fig, out_dir / "cameras.png")
             write_json(out_dir / "inspect.json", summary)
     return summary
+
+
+def _jumps(views: list[int]) -> str:
+    if not views:
+        return "none"
+    return (f"views {', '.join(map(str, views))} turn over 90 degrees from the previous view: if the views are a walk's "
+            "frames, the poses folded it (look-alike sides of the scene); 'nerfmeta poses' on the images recomputes them")
 
 
 def _vec(values: tuple[float, ...]) -> str:

@@ -84,3 +84,18 @@ def test_lego(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert (small["width"], small["height"]) == (100, 100)
     assert small["focal"][0] == pytest.approx(1111.111 / 8, rel=1e-4)
     assert (tmp_path / "o" / "cameras.png").is_file()
+
+
+@pytest.mark.parametrize("folded", [False, True])
+def test_pose_jumps_name_a_folded_walk(tmp_path: Path, folded: bool) -> None:
+    import numpy as np
+    import sfm_scenes
+
+    poses = sfm_scenes.ring_poses(24, turn=1.5)  # a walk of 22.5-degree steps, one and a half times round
+    if folded:  # views 8-13 put on the far side, as beer's shipped COLMAP poses put three stretches of its walk
+        half_turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+        poses[8:14] = half_turn @ poses[8:14]
+    sfm_scenes.write_blender(tmp_path / "walk", np.zeros((24, 8, 8, 3), np.uint8), poses, 8.0)
+    summary = summarize_scene(load_scene(tmp_path / "walk"))
+    assert summary.pose_jumps == ([8, 14] if folded else [])
+    assert ("views 8, 14 turn over 90 degrees" in format_summary(summary)) == folded
