@@ -17,7 +17,7 @@ from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.normalize import describe
 from nerfmeta.data.registry import load_scene_with
 from nerfmeta.data.scene import Normalization, Scene
-from nerfmeta.data.sfm import walk_jumps
+from nerfmeta.data.sfm import folded_walk_note, walk_jumps
 from nerfmeta.paths import check_output_folder, os_errors_named
 from nerfmeta.io import atomic_path, write_json
 from nerfmeta.render.rays import frustum_corners
@@ -132,7 +132,7 @@ def format_summary(summary: SceneSummary) -> str:
         ("background", bg),
         ("camera distance", "to bounds centre: min {:.3f}, median {:.3f}, max {:.3f}".format(*s.camera_distance)),
         ("normalisation", describe(Normalization(float(s.normalization["scale"]), tuple(s.normalization["offset"])))),  # type: ignore[arg-type]
-        ("pose jumps", _jumps(s.pose_jumps)),
+        ("pose jumps", folded_walk_note(s.pose_jumps) if s.pose_jumps else "none"),
     ]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
@@ -234,13 +234,6 @@ def inspect_scene(
             save_png(fig, out_dir / "cameras.png")
             write_json(out_dir / "inspect.json", summary)
     return summary
-
-
-def _jumps(views: list[int]) -> str:
-    if not views:
-        return "none"
-    return (f"views {', '.join(map(str, views))} turn over 90 degrees from the previous view: if the views are a walk's "
-            "frames, the poses folded it (look-alike sides of the scene); 'nerfmeta poses' on the images recomputes them")
 
 
 def _vec(values: tuple[float, ...]) -> str:

@@ -99,3 +99,15 @@ def test_pose_jumps_name_a_folded_walk(tmp_path: Path, folded: bool) -> None:
     summary = summarize_scene(load_scene(tmp_path / "walk"))
     assert summary.pose_jumps == ([8, 14] if folded else [])
     assert ("views 8, 14 turn over 90 degrees" in format_summary(summary)) == folded
+
+
+def test_fit_warns_of_a_folded_walk(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    import numpy as np
+    import sfm_scenes
+
+    poses = sfm_scenes.ring_poses(24, turn=1.5)
+    poses[8:14] = np.diag([-1.0, -1.0, 1.0, 1.0]) @ poses[8:14]
+    sfm_scenes.write_blender(tmp_path / "walk", np.zeros((24, 8, 8, 3), np.uint8), poses, 8.0)
+    assert main(["fit", str(tmp_path / "walk"), "--out", str(tmp_path / "run"), "--iters", "1", "--eval-every", "0",
+                 "--renders", "0", "--checkpoint-every", "0"]) == 0
+    assert "views 8, 14 turn over 90 degrees" in caplog.text and "'nerfmeta poses'" in caplog.text

@@ -477,6 +477,13 @@ def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
     return doc, camera
 
 
+def folded_walk_note(views: Sequence[int]) -> str:
+    """One line on the jumps (:func:`walk_jumps`) of a scene's poses, and what recomputes them."""
+    return (f"views {', '.join(map(str, views))} turn over 90 degrees from the previous view: if the views are a walk's "
+            "frames, the poses folded it (look-alike sides of the scene) and a fit will blur; 'nerfmeta poses' on the "
+            "images recomputes them")
+
+
 def model_jumps(model, names: Sequence[str]) -> list[str]:
     """The photos of ``names`` (registered in ``model``, in file-name order) where a walk jumps (:func:`walk_jumps`)."""
     by_name = {image.name: image for image in model.images.values() if image.has_pose}

@@ -39,6 +39,7 @@ import torch
 from nerfmeta.budget import check_fit_fits
 from nerfmeta.config import bounded
 from nerfmeta.data import load_scene
+from nerfmeta.data.sfm import folded_walk_note, walk_jumps
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import build_model, config_from_dict, default_config
@@ -126,6 +127,9 @@ def run_scene(config: RunConfig):
     space (a forward-facing scene in NDC, :func:`nerfmeta.fit.sampler.fit_space`)."""
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
                        scene_type=config.scene_type)
+    jumps = walk_jumps(scene.poses[:, :3, :3].double().cpu().numpy())
+    if jumps:
+        log.warning("%s: %s", config.scene, folded_walk_note(jumps))
     return fit_space(scene, config.ndc_near_factor)
 
 
