@@ -59,11 +59,11 @@ REPORT = "sfm.json"
 IMAGES = "images"
 COLMAP = "colmap"
 MIN_PHOTOS = 3
+"""Fewest photos structure from motion is attempted on (two give a pair, not a scene to fit)."""
 WALK_STEP_DEG = 30.0
 """Photos whose median turn between file-name neighbours is at most this are a walk (a video's frames)."""
 JUMP_DEG = 90.0
 """A turn above this between neighbours of a walk is a jump (:func:`walk_jumps`)."""
-"""Fewest photos structure from motion is attempted on (two give a pair, not a scene to fit)."""
 WORLD_FROM_COLMAP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """The rotation applied to COLMAP's world, as nerfstudio's ``colmap_to_json`` applies it (rows 0, 2, 1; the last negated)."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0])
@@ -479,7 +479,7 @@ def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
 
 def folded_walk_note(views: Sequence[int]) -> str:
     """One line on the jumps (:func:`walk_jumps`) of a scene's poses, and what recomputes them."""
-    return (f"views {', '.join(map(str, views))} turn over 90 degrees from the previous view: if the views are a walk's "
+    return (f"views {', '.join(map(str, views))} turn over {JUMP_DEG:g} degrees from the previous view: if the views are a walk's "
             "frames, the poses folded it (look-alike sides of the scene) and a fit will blur; 'nerfmeta poses' on the "
             "images recomputes them")
 
