@@ -90,11 +90,13 @@ def _first_model_folds(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return seen
 
 
-def test_auto_matches_neighbours_when_every_pair_folds_a_walk(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_auto_matches_neighbours_when_every_pair_folds_a_walk(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                              caplog: pytest.LogCaptureFixture) -> None:
     folder, true = arc
     seen = _first_model_folds(monkeypatch)
     result = compute_poses(folder, tmp_path / "scene", SfmConfig(threads=1))
     assert len(seen) == 2 and result.matcher == "sequential" and result.jumps == ()
+    assert f"folded the walk at {seen[0][3]}" in caplog.text and "with its next 10 only" in caplog.text
     estimated = np.array([f["transform_matrix"] for f in json.loads((tmp_path / "scene" / "transforms.json").read_text())["frames"]])
     rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
     assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE

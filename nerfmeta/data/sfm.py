@@ -559,7 +559,8 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             raise _unregistered_error(folder, missing, len(names), config)
         jumps = model_jumps(model, registered)
         if jumps and config.matcher == "auto":  # a folded walk: match neighbours only, keep it if it folds less
-            log.info("%s: every pair folded the walk at %s; matching neighbours only", folder, ", ".join(jumps))
+            log.warning("%s: matching every pair folded the walk at %s (look-alike views from different sides); "
+                        "matching each photo with its next %d only", folder, ", ".join(jumps[:6]), config.overlap)
             retry = work / "sequential"
             retry.mkdir()
             again = reconstruct(prepared, names, retry, replace(config, matcher="sequential"), progress, seconds,
