@@ -263,3 +263,20 @@ def test_the_loop_tells_the_model_its_progress_before_each_step(tiny_scene):
     fit(Recording(DenseGridConfig(side=4), scene.bounds), scene, FitConfig(iters=4, batch_rays=16, eval_every=0, final_ssim=False,
                                                                         final_lpips=False), background=torch.ones(3))
     assert seen == [(0, 0.0), (1, 0.25), (2, 0.5), (3, 0.75)]
+
+
+def test_callbacks_that_watch_the_final_evaluation_hear_each_view(tiny_scene, tmp_path):
+    heard: list[tuple[int, int]] = []
+
+    class Watcher:
+        def __call__(self, record, model, state) -> None:
+            pass
+
+        def evaluating(self, done: int, total: int) -> None:
+            heard.append((done, total))
+
+    steps: list[int] = []
+    summary = run_fit(_grid_run_config(tiny_scene, 3, 0), tmp_path / "run",
+                      callbacks=[Watcher(), lambda record, model, state: steps.append(record.iter)])
+    n = summary["test_views"]
+    assert n == 4 and heard == [(k, n) for k in range(n + 1)] and steps == [1, 2, 3]  # a plain callback still works

@@ -157,6 +157,7 @@ class ProgressBar:
         self.budget = fit_config.time_budget_s
         self.total = round(self.budget, 1) if self.budget else fit_config.iters
         self.bar = None  # created with the first iteration, so an input error stays a single line
+        self.eval_bar = None
 
     def __call__(self, record: StepRecord, model, state) -> None:
         if self.bar is None:
@@ -174,7 +175,19 @@ class ProgressBar:
         if record.event:
             self.bar.write(f"iter {record.iter}: {record.event}")
 
+    def evaluating(self, done: int, total: int) -> None:
+        """A second bar over the final evaluation's views (:class:`~nerfmeta.fit.loop.EvalProgress`)."""
+        if self.eval_bar is None:
+            self.eval_bar = tqdm(total=total, desc="final evaluation", unit="view", dynamic_ncols=True, leave=False)
+        self.eval_bar.n = done
+        self.eval_bar.refresh()
+        if done >= total:
+            self.eval_bar.close()
+            self.eval_bar = None
+
     def close(self) -> None:
+        if self.eval_bar is not None:
+            self.eval_bar.close()
         if self.bar is not None:
             self.bar.close()
 

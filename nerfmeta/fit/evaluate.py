@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -111,14 +111,21 @@ def evaluate_views(
     with_ssim: bool = True,
     chunk: int = 16384,
     lpips_model: torch.nn.Module | None = None,
+    on_view: Callable[[int, int], None] | None = None,
 ) -> EvalResult:
     """Render ``views`` and score them against the ground truth (LPIPS too with ``lpips_model``, see
-    :func:`nerfmeta.metrics.load_lpips`)."""
+    :func:`nerfmeta.metrics.load_lpips`). ``on_view(done, total)`` is called before the first view and after each."""
     was_training = model.training
     model.eval()
+    renders: list[ViewRender] = []
     try:
         with model.render_session():  # the views share what the model keeps per render (e.g. the grid's copies)
-            renders = tuple(render_view(model, scene, v, background, chunk=chunk) for v in views)
+            for v in views:
+                if on_view is not None:
+                    on_view(len(renders), len(views))
+                renders.append(render_view(model, scene, v, background, chunk=chunk))
+            if on_view is not None:
+                on_view(len(renders), len(views))
     finally:
         model.train(was_training)
     psnrs = [float(mse_to_psnr(((r.rgb - r.target) ** 2).mean().clamp(min=MSE_FLOOR))) for r in renders]
@@ -129,6 +136,6 @@ def evaluate_views(
         psnr=sum(psnrs) / len(psnrs),
         ssim=None if ssims is None else sum(ssims) / len(ssims),
         samples_per_ray=spr,
-        renders=renders,
+        renders=tuple(renders),
         lpips=None if lpipses is None else sum(lpipses) / len(lpipses),
     )

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Protocol, Sequence, runtime_checkable
 
 import torch
 
@@ -133,6 +133,13 @@ class Callback(Protocol):
     def __call__(self, record: StepRecord, model: RadianceModel, state: FitState) -> None: ...
 
 
+@runtime_checkable
+class EvalProgress(Protocol):
+    """A callback that also hears how the final evaluation advances (it can take longer than the fit on large views)."""
+
+    def evaluating(self, done: int, total: int) -> None: ...
+
+
 @dataclass
 class FitResult:
     state: FitState
@@ -236,8 +243,14 @@ def fit(
             except LpipsUnavailable as err:  # e.g. a tampered weights file: the fit's result still stands
                 log.warning("%s", err)
                 note_decisions([Decision("final_lpips", False, str(err), {})])
+        watchers = [cb for cb in callbacks if isinstance(cb, EvalProgress)]
+
+        def on_view(done: int, total: int) -> None:
+            for watcher in watchers:
+                watcher.evaluating(done, total)
+
         result = evaluate_views(model, scene, list(test_views), background, with_ssim=config.final_ssim and not ssim_skip,
-                                chunk=config.chunk_rays, lpips_model=lpips_model)
+                                chunk=config.chunk_rays, lpips_model=lpips_model, on_view=on_view)
         state.eval_time_s += time.perf_counter() - t_eval
         state.last_test_psnr = result.psnr
         return result
