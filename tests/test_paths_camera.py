@@ -10,10 +10,14 @@ import torch
 from nerfmeta.render.cameras import look_at
 from nerfmeta.render.paths import (
     focus_depth,
+    is_walk,
     look_at_centre,
     mean_pose,
+    nearest_rotation,
     orbit_path,
+    smooth_keys,
     spiral_path,
+    walk_path,
 )
 
 UP = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -87,3 +91,51 @@ def test_focus_depth_is_llffs_harmonic_blend() -> None:
     assert focus_depth(2.0, 8.0) == pytest.approx(1.0 / (0.25 / 2.0 + 0.75 / 8.0))
 
 
+
+
+def test_an_unsmoothed_walk_passes_through_every_camera() -> None:
+    cams = ring(12, turn=0.5)
+    path = walk_path(cams, 3 * 11 + 1, smooth=0)
+    torch.testing.assert_close(path[::3], cams, rtol=0, atol=1e-12)
+
+
+def test_walk_frames_are_cameras_between_their_neighbours() -> None:
+    cams = ring(24, turn=1.5, radius=4.0)  # one and a half times round, as a phone video walks
+    path = walk_path(cams, 100)
+    rot = path[:, :3, :3]
+    torch.testing.assert_close(rot.transpose(-1, -2) @ rot, torch.eye(3, dtype=torch.float64).expand(100, 3, 3), rtol=0, atol=1e-9)
+    assert torch.allclose(torch.linalg.det(rot), torch.ones(100, dtype=torch.float64))
+    offsets = path[:, :3, 3] - torch.tensor([0.5, -1.0, 0.25], dtype=torch.float64)
+    radius = torch.linalg.vector_norm(offsets[:, :2], dim=-1)
+    assert float((radius - 4.0).abs().max()) < 0.1 and float((offsets[:, 2] - 2.0).abs().max()) < 1e-9  # 2.5 % on 22.5-degree steps
+    forward = -path[:, :3, 2]  # every frame still looks at the ring's centre, to within two degrees
+    cosine = (forward * -offsets).sum(-1) / torch.linalg.vector_norm(offsets, dim=-1)
+    assert float(cosine.min()) > math.cos(math.radians(2.0))
+
+
+def test_smoothing_takes_out_a_shake_and_keeps_the_ends() -> None:
+    cams = ring(30, turn=0.5)
+    shaken = cams.clone()
+    shaken[1:-1, :3, 3] += 0.2 * torch.tensor([1.0, -1.0, 0.5], dtype=torch.float64) * (
+        (-1.0) ** torch.arange(28, dtype=torch.float64))[:, None]
+    smooth = smooth_keys(shaken, 2)
+    torch.testing.assert_close(smooth[[0, -1]], shaken[[0, -1]])
+    error = lambda poses: float(torch.linalg.vector_norm(poses[2:-2, :3, 3] - cams[2:-2, :3, 3], dim=-1).max())
+    assert error(smooth) < 0.1 * error(shaken)
+
+
+def test_nearest_rotation_of_a_rotation_is_itself_and_never_a_reflection() -> None:
+    cams = ring(5)
+    torch.testing.assert_close(nearest_rotation(cams[:, :3, :3]), cams[:, :3, :3], rtol=0, atol=1e-12)
+    flipped = nearest_rotation(torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)) + 1e-3)
+    assert float(torch.linalg.det(flipped)) == pytest.approx(1.0)
+
+
+def test_is_walk() -> None:
+    assert is_walk(ring(24, turn=1.5))  # 22.5-degree steps
+    assert not is_walk(ring(6))  # 60-degree steps: views around, not a walk
+    folded = ring(24, turn=1.5)
+    folded[8:14] = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64)) @ folded[8:14]
+    assert not is_walk(folded)
+    with pytest.raises(ValueError, match="two cameras"):
+        walk_path(ring(1), 5)

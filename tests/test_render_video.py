@@ -110,3 +110,23 @@ def test_a_failure_mid_video_leaves_nothing(tmp_path: Path, suffix: str) -> None
         writer.append(np.stack([np.full((8, 8, 3), 0.25, np.float32), np.full((8, 8, 3), 0.75, np.float32)]))
         writer.close()
     assert made_by_nerfmeta(target) and iio.imread(target, index=None).shape[0] == 2
+
+
+def test_auto_follows_the_walk_of_an_unbounded_capture(tiny_scene: Path) -> None:
+    import dataclasses
+
+    from test_paths_camera import ring
+
+    from nerfmeta.commands.render import path_poses
+    from nerfmeta.data import load_scene
+    from nerfmeta.data.scene_type import SceneType
+
+    scene = load_scene(tiny_scene)
+    n = scene.poses.shape[0]
+    walk = ring(n, turn=0.75).to(scene.poses.dtype)  # 22.5-degree steps (12 views): a walk
+    unbounded = dataclasses.replace(scene, poses=walk, scene_type=SceneType("unbounded", "test"))
+    name, poses = path_poses(unbounded, "auto", 7)
+    assert name == "walk" and poses.shape == (7, 4, 4)
+    assert path_poses(dataclasses.replace(unbounded, scene_type=SceneType("object", "test")), "auto", 7)[0] == "orbit"
+    around = dataclasses.replace(unbounded, poses=ring(n, turn=3.0).to(scene.poses.dtype))  # 90-degree steps
+    assert path_poses(around, "auto", 7)[0] == "orbit"

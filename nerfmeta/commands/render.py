@@ -19,7 +19,7 @@ import torch
 
 from nerfmeta.errors import ConfigError
 
-PATHS = ("auto", "orbit", "spiral", "test")
+PATHS = ("auto", "orbit", "spiral", "walk", "test")
 FRAME_CHUNK = 8
 """Frames rendered per step (each a small scene of their poses; the video takes them as they come)."""
 
@@ -27,17 +27,19 @@ FRAME_CHUNK = 8
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "render",
-        help="render a video of a fitted run along an orbit, a spiral or its test views",
+        help="render a video of a fitted run along an orbit, a spiral, the capture's walk or its test views",
         description="Render RUN (a 'nerfmeta fit' run folder) along a camera path into FILE (.mp4 or .gif). "
                     "orbit: a circle around the point the cameras look at (cameras around an object); spiral: "
-                    "LLFF's spiral around the mean camera (forward-facing captures); test: the test views; auto: "
-                    "orbit when the viewing directions spread widely, else spiral.",
+                    "LLFF's spiral around the mean camera (forward-facing captures); walk: along the training "
+                    "cameras in their order, smoothed (a video's own path; where an unbounded scene's background "
+                    "was seen); test: the test views; auto: spiral for a forward-facing capture, walk for an "
+                    "unbounded one whose cameras form a walk, else orbit.",
     )
     p.add_argument("run", metavar="RUN", help="run folder written by 'nerfmeta fit'")
     p.add_argument("--out", required=True, metavar="FILE", help="video to write: FILE.mp4 or FILE.gif")
     p.add_argument("--path", choices=PATHS, default="auto", help="camera path (default auto)")
     p.add_argument("--frames", type=int, default=None, metavar="N",
-                   help="frames along an orbit or spiral (default 120); --path test renders each test view once")
+                   help="frames along an orbit, spiral or walk (default 120); --path test renders each test view once")
     p.add_argument("--fps", type=float, default=30.0, metavar="F", help="frames per second (default 30)")
     p.add_argument("--resolution", default="1", metavar="WxH|SCALE",
                    help="frame size: WxH in pixels, or a scale of the run's image size (default 1)")
@@ -98,7 +100,15 @@ def path_poses(scene, path: str, frames: int) -> tuple[str, torch.Tensor]:
 
     train = scene.poses[scene.split_indices("train")].double()
     if path == "auto":  # the kind of capture decides (nerfmeta.data.scene_type)
-        path = "spiral" if scene.scene_type.kind == "forward" else "orbit"
+        if scene.scene_type.kind == "forward":
+            path = "spiral"
+        else:
+            path = "walk" if scene.scene_type.kind == "unbounded" and paths.is_walk(train) else "orbit"
+    if path == "walk":
+        try:
+            return path, paths.walk_path(train, frames)
+        except ValueError as err:
+            raise ConfigError(f"--path walk: {err}") from None
     if path == "test":
         return path, scene.poses[scene.split_indices("test")].double()
     if path == "orbit":

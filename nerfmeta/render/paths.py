@@ -10,14 +10,19 @@ Every pose is a (4, 4) OpenGL camera-to-world matrix (x right, y up, looking alo
   spread of the camera centres, every frame looking at a point ``focus_depth`` ahead of the mean
   pose. For forward-facing captures.
 
+- :func:`walk_path`: along the training cameras in their order, smoothed (a video's own walk). For
+  unbounded captures, where the fit knows the background only from where the camera went.
+
 Which one a video of a scene follows by default is decided by its kind of capture
-(:mod:`nerfmeta.data.scene_type`: spiral for forward-facing, orbit otherwise).
+(:mod:`nerfmeta.data.scene_type`): spiral for forward-facing; walk for an unbounded capture whose
+cameras form a walk (:func:`is_walk`); orbit otherwise.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from nerfmeta.data.scene_type import axis_normal_equations, view_directions
@@ -110,6 +115,69 @@ def spiral_path(poses: torch.Tensor, n_frames: int, focus_depth: float, *, rotat
     eyes = centre_pose[:3, 3] + offsets @ rot.T
     target = centre_pose[:3, 3] - focus_depth * rot[:, 2]
     return look_at(eyes, target.expand_as(eyes), rot[:, 1].expand_as(eyes))
+
+
+def nearest_rotation(m: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) the rotation nearest each ``m`` in the Frobenius norm (its polar factor, via the SVD)."""
+    u, _, vt = torch.linalg.svd(m)
+    d = torch.linalg.det(u @ vt)
+    fix = torch.ones_like(m[..., 0, :])
+    fix[..., 2] = d  # flip the last singular direction where the product is a reflection
+    return u @ torch.diag_embed(fix) @ vt
+
+
+TAUBIN_STEPS = (0.5, -0.53)
+"""Taubin's smoothing (1995): a step towards the neighbours' mean, then a slightly larger one back. Shake from
+one camera to the next is taken out; a smooth curve keeps its size (plain averaging pulls an orbit inwards)."""
+
+
+def smooth_keys(poses: torch.Tensor, passes: int) -> torch.Tensor:
+    """(n, 4, 4) ``poses`` smoothed by ``passes`` of :data:`TAUBIN_STEPS` over their neighbours (centres and
+    rotations; rotations projected back with :func:`nearest_rotation`); the first and last are kept. Takes out
+    a hand's shake."""
+    out = poses.clone()
+    for _ in range(passes if len(poses) > 2 else 0):
+        for step in TAUBIN_STEPS:
+            mid = out[1:-1] + step * (0.5 * (out[:-2] + out[2:]) - out[1:-1])
+            out[1:-1, :3, 3] = mid[:, :3, 3]
+            out[1:-1, :3, :3] = nearest_rotation(mid[:, :3, :3])
+    return out
+
+
+def walk_path(poses: torch.Tensor, n_frames: int, *, smooth: int = 2) -> torch.Tensor:
+    """(n_frames, 4, 4) cameras along the walk the training cameras took, in their order (a video's own path).
+
+    The cameras are first smoothed (:func:`smooth_keys`, ``smooth`` passes); the frames are spread evenly over
+    the walk's steps, centres on a Catmull-Rom spline through the cameras' centres, rotations blended between
+    neighbouring cameras (chordal, :func:`nearest_rotation`). Frames stay where the capture looked from, so a
+    video of an unbounded scene shows what the fit saw. With ``smooth=0`` and ``n_frames = k (n - 1) + 1``
+    every k-th frame is a training camera exactly.
+    """
+    if len(poses) < 2:
+        raise ValueError("a walk needs at least two cameras")
+    keys = smooth_keys(poses, smooth)
+    t = torch.linspace(0, len(keys) - 1, n_frames, dtype=poses.dtype)
+    i = t.floor().long().clamp(max=len(keys) - 2)
+    f = (t - i)[:, None]
+    last = len(keys) - 1
+    p0, p1, p2, p3 = (keys[(i + k).clamp(0, last), :3, 3] for k in (-1, 0, 1, 2))
+    f2, f3 = f * f, f * f * f
+    centres = 0.5 * (2 * p1 + (p2 - p0) * f + (2 * p0 - 5 * p1 + 4 * p2 - p3) * f2 + (3 * p1 - p0 - 3 * p2 + p3) * f3)
+    blend = (1 - f)[:, :, None] * keys[i, :3, :3] + f[:, :, None] * keys[i + 1, :3, :3]
+    out = torch.eye(4, dtype=poses.dtype).repeat(n_frames, 1, 1)
+    out[:, :3, :3] = nearest_rotation(blend)
+    out[:, :3, 3] = centres
+    return out
+
+
+def is_walk(poses: torch.Tensor) -> bool:
+    """Whether the cameras, in their order, form a walk with no jump (:func:`nerfmeta.data.sfm.walk_jumps`)."""
+    from nerfmeta.data.sfm import JUMP_DEG, WALK_STEP_DEG, rotation_steps_deg
+
+    if len(poses) < 3:
+        return False
+    steps = rotation_steps_deg(poses[:, :3, :3].double().cpu().numpy())
+    return float(np.median(steps)) <= WALK_STEP_DEG and float(steps.max()) <= JUMP_DEG
 
 
 def focus_depth(near: float, far: float) -> float:
