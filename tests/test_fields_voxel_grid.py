@@ -221,6 +221,26 @@ def test_growth_keeps_the_render(scene, stages):
     assert _psnr(after.rgb, before.rgb) > 30.0, _psnr(after.rgb, before.rgb)
 
 
+def test_a_growth_due_late_in_the_fit_is_skipped_with_the_ones_after_it():
+    config = dataclasses.replace(SMALL, coarse_iters=0, growth_steps=(5, 10, 15), growth_cutoff=0.8)
+    model = _model(config)
+    size = model.size
+    assert model.begin_step(5, 0.5).message == f"grid grown to {model.size}" and model.size != size  # 50 % done: grown
+    size = model.size
+    event = model.begin_step(10, 0.85)
+    assert model.size == size and not event.params_changed and "growth skipped" in event.message and "85%" in event.message
+    assert not model.begin_step(15, 0.9).message and model.size == size  # later growths stay skipped, said once
+    never = _model(dataclasses.replace(config, growth_cutoff=1.0))
+    first = never.size
+    assert "grid grown" in never.begin_step(5, 0.99).message and "grid grown" in never.begin_step(10, 0.999).message
+    assert math.prod(never.size) > math.prod(first)
+
+
+def test_growth_cutoff_must_be_a_fraction():
+    with pytest.raises(Exception, match="growth_cutoff"):
+        dataclasses.replace(SMALL, growth_cutoff=0.0)
+
+
 def _ball_model(skipping=True):
     """A fine-stage model whose density is a dense ball (raw 8) in empty space (raw -30)."""
     config = dataclasses.replace(SMALL, coarse_iters=0, growth_steps=(), empty_space_skipping=skipping)

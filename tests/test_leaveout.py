@@ -28,7 +28,8 @@ from nerfmeta.init import load_init, save_init
 
 # A coarse stage, a growth step, and the view trial decided at fine step 20.
 GRID = {"coarse_iters": 30, "coarse_num_voxels": 16**3, "num_voxels": 24**3, "growth_steps": [10], "view_dependent": "auto",
-        "view_probe_step": 20, "view_probe_rays": 2048, "mlp_width": 8, "mlp_depth": 2, "feature_dim": 2}
+        "view_probe_step": 20, "view_probe_rays": 2048, "mlp_width": 8, "mlp_depth": 2, "feature_dim": 2,
+        "growth_cutoff": 1.0}  # the growth falls at 80 % of these short fits: keep it, as the tests expect
 FIT = FitConfig(iters=60, batch_rays=512, eval_every=0, checkpoint_every=0)
 PROBE = GRID["coarse_iters"] + GRID["view_probe_step"]
 CPU = torch.device("cpu")

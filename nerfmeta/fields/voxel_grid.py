@@ -18,7 +18,8 @@ Two stages, as in DirectVoxGO (Sun et al., CVPR 2022):
    feature channels are dropped (the rest of the fit then steps about twice as fast). The fine stage starts from the
    coarse one (density converted through world units, diffuse logits copied), so switching stages
    keeps the picture. The grids grow progressively: ``num_voxels / 2**len(growth_steps)`` voxels
-   at first, doubling at each of ``growth_steps`` (fine-stage steps), resampled trilinearly. The
+   at first, doubling at each of ``growth_steps`` (fine-stage steps), resampled trilinearly; a growth
+   falling due after ``growth_cutoff`` of the fit's length is skipped (too late to pay for itself). The
    occupancy cache is refreshed every ``occupancy_every`` fine steps: voxels whose alpha fell
    below ``mask_cache_thres`` (dilated by one voxel) leave it. An optional total-variation loss
    (``tv_weight``) smooths the fine density.
@@ -199,6 +200,10 @@ class VoxelGridConfig:
     """Fine steps between occupancy-cache pruning (0: never prune)."""
     growth_steps: tuple[int, ...] = (100, 200, 300)
     """Fine-stage steps at which the grids double their voxel count."""
+    growth_cutoff: float = 0.8
+    """A growth falling due after this fraction of the fit's length (its iterations or time budget) is skipped, with
+    the ones after it: a grid grown that late has too few steps left to use its new voxels, and each costs more
+    (1: never skipped)."""
     world_bound_scale: float = 1.05
     """Scale of the tightened fine box about its centre."""
     coarse_lr_density: float = 0.3
@@ -250,6 +255,7 @@ class VoxelGridConfig:
             ("occupancy_every", self.occupancy_every >= 0, "use 0 (never) or more"),
             ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
              "use increasing positive fine-stage steps, e.g. [100, 200]"),
+            ("growth_cutoff", 0.0 < self.growth_cutoff <= 1.0, "use a fraction of the fit in (0, 1], e.g. 0.8"),
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
               for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
@@ -388,6 +394,7 @@ class VoxelGrid(RadianceModel):
         self.register_buffer("bounds", self.scene_bounds.clone())
         self.occupancy = OccupancyGrid(self.scene_bounds, box=self.box)
         self.level = 0
+        self.growth_skipped = False  # a late growth was skipped (said once)
         self.fine_step0 = config.coarse_iters
         # Resolved view dependence; None ("auto") until ``decide`` measures it, the MLP on trial until then.
         self.view_dependent: bool | None = config.view_dependent if isinstance(config.view_dependent, bool) else None
@@ -683,7 +690,9 @@ class VoxelGrid(RadianceModel):
         if self.stage != "fine":
             return StepEvent()
         fine_step = step - self.fine_step0
-        grown = self.level < len(cfg.growth_steps) and fine_step >= cfg.growth_steps[self.level]
+        due = self.level < len(cfg.growth_steps) and fine_step >= cfg.growth_steps[self.level]
+        late = due and progress is not None and progress >= cfg.growth_cutoff and cfg.growth_cutoff < 1.0
+        grown = due and not late
         if grown:
             self._grow()
         if cfg.occupancy_every > 0 and fine_step > 0 and fine_step % cfg.occupancy_every == 0 and cfg.empty_space_skipping:
@@ -691,13 +700,19 @@ class VoxelGrid(RadianceModel):
         if self.view_dependent is None and fine_step >= cfg.view_probe_step:
             self.view_dependent = True  # "auto" never decided (no ``decide`` call): keep the MLP
         notes = [f"grid grown to {self.size}"] if grown else []
+        changed = grown
+        if late and not self.growth_skipped:
+            self.growth_skipped = True
+            notes.append(f"growth skipped, and the ones after it: {100 * progress:.0f}% of the fit done "
+                         f"(growth_cutoff {cfg.growth_cutoff:g})")
         if self.view_dependent is False and "mlp" in self._modules:
             if self._fold_dirs is None:
                 raise RuntimeError("view_dependent was resolved to False without decide(): no directions to fold the MLP over")
             self._fold_view_branch(self._fold_dirs)
             self._fold_dirs = None
             notes.append("colour MLP folded into the diffuse colour and dropped (not view-dependent)")
-        return StepEvent(True, "; ".join(notes)) if notes else StepEvent()
+            changed = True
+        return StepEvent(changed, "; ".join(notes))  # a skipped growth changes no parameter: the optimiser is kept
 
     def _density_grid(self) -> torch.Tensor:
         return self.density_coarse if self.stage == "coarse" else self.density
