@@ -12,7 +12,7 @@
 #      backbone, render, mesh, eval-geometry, classifier train and classify, pretrain, meta-train, an
 #      --init auto fit with --compare scratch) and says which ones failed;
 #   2. fits beer for 120 s on cuda, with our poses (beer_sfm, made by 'prepare') and with the shipped ones ($BEER
-#      picks), times its test renders (scripts/bench_render.py) and renders an orbit video;
+#      picks), times its test renders (scripts/bench_render.py) and renders a video along the capture's walk;
 #   3. fits lego at 100x100 with the default route and with the scratch grid (SECONDS each, default 30);
 #   4. fits the 128 px mug's surface (the README's concave-object recipe, 512 rays a step, for $MUG_SECONDS,
 #      default 300 s: more steps than the CPU's 10 minutes give) and scores it.
@@ -24,10 +24,10 @@ prepare() {
     local dest=$1 py=${PYTHON:-.venv/bin/python}
     mkdir -p "$dest"
     cp -r ../shared/data/real/beer "$dest/beer"
-    # beer's own poses: the shipped COLMAP poses fold its 540-degree walk into four overlapping arcs
-    # (BENCHMARKS.md, "Poses from photos"); sequential matching of neighbouring frames keeps it whole
-    "$py" -m nerfmeta poses ../shared/data/real/beer/images --out "$dest/beer_sfm" --max-side 640 --matcher sequential \
-        > /dev/null 2>&1 || echo "nerfmeta poses failed on beer" >&2
+    # beer's own poses, from the full-size photos with the defaults: the shipped COLMAP poses fold its 540-degree
+    # walk into four overlapping arcs (BENCHMARKS.md, "Poses from photos"); 'auto' matching keeps it whole
+    "$py" -m nerfmeta poses ../shared/data/real/beer/images --out "$dest/beer_sfm" > /dev/null 2>&1 \
+        || echo "nerfmeta poses failed on beer" >&2
     # lego at 100x100 as `--downscale 8` loads it: block means of premultiplied colour (compositing on
     # any background first and then averaging gives the same), alpha averaged, stored straight.
     "$py" - "$dest/lego100" <<'EOF'
@@ -106,15 +106,14 @@ run() {
     # 2. beer, the real capture (#16's recipe), and its test renders
     if [[ $parts == *2* ]]; then
     # --iters 1000000: the budget ends the fit, not the default 3000 iterations (a GPU makes those in ~50 s here)
-    # BEER: which of the two pose sets (the shipped ones at --downscale 4, ours from 640 px photos at --downscale 2:
-    # both 180x320); each gets a fit, its timed test renders and an orbit video
-    local name downscale
+    # BEER: which of the two pose sets (the shipped ones, ours from the full-size photos; both at --downscale 4:
+    # 180 x 320 and 178 x 316); each gets a fit, its timed test renders and a video along the capture's walk
+    local name
     for name in ${BEER:-beer_sfm beer}; do
-        downscale=4; [ "$name" = beer_sfm ] && downscale=2
-        step "${name}_fit" 240 $nm fit "$data/$name" --out "$work/$name" --downscale $downscale --init scratch \
+        step "${name}_fit" 240 $nm fit "$data/$name" --out "$work/$name" --downscale 4 --init scratch \
             --backbone grid --time-budget 120 --iters 1000000 --eval-every 500 $gpu
         step "${name}_render" 120 "$py" scripts/bench_render.py "$work/$name" --device "$device" --views 3
-        step "${name}_video" 120 $nm render "$work/$name" --out "$out/${name}_orbit.gif" --path orbit --frames 24 $gpu
+        step "${name}_video" 120 $nm render "$work/$name" --out "$out/${name}_walk.gif" --path walk --frames 24 $gpu
         cp "$work/${name}_render.log" "$out/${name}_render.txt" 2>/dev/null
         mkdir -p "$out/$name"
         cp "$work/$name"/{summary.json,metrics.jsonl,psnr_vs_time.png} "$work/$name"/renders/*.png "$out/$name/" 2>/dev/null
