@@ -226,16 +226,20 @@ def rotation_steps_deg(rotations: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def walk_jumps(rotations: np.ndarray, *, walk_deg: float = WALK_STEP_DEG, jump_deg: float = JUMP_DEG) -> list[int]:
-    """Indices ``i`` where photos ``i - 1 -> i`` of a walk turn by more than ``jump_deg``.
-
-    A walk is a sequence whose median step is at most ``walk_deg`` (a video's frames in file-name
-    order); photos in no particular order have no walk, and no jumps are reported for them. A jump in
-    a walk is almost always a reconstruction that folded look-alike views from different sides.
-    """
+def is_walk(rotations: np.ndarray, *, walk_deg: float = WALK_STEP_DEG) -> bool:
+    """Whether ``(N, 3, 3)`` camera rotations in their order are a walk: three or more whose median step is at most
+    ``walk_deg`` (a video's frames in file-name order; photos in no particular order are not)."""
     steps = rotation_steps_deg(np.asarray(rotations, dtype=np.float64))
-    if len(steps) < 2 or np.median(steps) > walk_deg:
+    return len(steps) >= 2 and float(np.median(steps)) <= walk_deg
+
+
+def walk_jumps(rotations: np.ndarray, *, jump_deg: float = JUMP_DEG) -> list[int]:
+    """Indices ``i`` where cameras ``i - 1 -> i`` of a walk (:func:`is_walk`) turn by more than ``jump_deg``; none
+    for cameras that are no walk. A jump in a walk is almost always a reconstruction that folded look-alike views
+    from different sides."""
+    if not is_walk(rotations):
         return []
+    steps = rotation_steps_deg(np.asarray(rotations, dtype=np.float64))
     return [int(i) + 1 for i in np.flatnonzero(steps > jump_deg)]
 
 

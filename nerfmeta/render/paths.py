@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from nerfmeta.data.scene_type import axis_normal_equations, view_directions
@@ -172,12 +171,10 @@ def walk_path(poses: torch.Tensor, n_frames: int, *, smooth: int = 2) -> torch.T
 
 def is_walk(poses: torch.Tensor) -> bool:
     """Whether the cameras, in their order, form a walk with no jump (:func:`nerfmeta.data.sfm.walk_jumps`)."""
-    from nerfmeta.data.sfm import JUMP_DEG, WALK_STEP_DEG, rotation_steps_deg
+    from nerfmeta.data.sfm import is_walk as rotations_walk, walk_jumps
 
-    if len(poses) < 3:
-        return False
-    steps = rotation_steps_deg(poses[:, :3, :3].double().cpu().numpy())
-    return float(np.median(steps)) <= WALK_STEP_DEG and float(steps.max()) <= JUMP_DEG
+    rotations = poses[:, :3, :3].double().cpu().numpy()
+    return rotations_walk(rotations) and not walk_jumps(rotations)
 
 
 def focus_depth(near: float, far: float) -> float:
