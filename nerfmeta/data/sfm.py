@@ -376,6 +376,11 @@ class SfmResult:
                 "unregistered": list(self.unregistered), "jumps": list(self.jumps)}
 
 
+def _posed(model) -> dict:
+    """The images of ``model`` that have a pose, by name (none for no model)."""
+    return {} if model is None else {image.name: image for image in model.images.values() if image.has_pose}
+
+
 def _largest_model(models: dict) -> "object | None":
     return max(models.values(), key=lambda m: m.num_reg_images(), default=None)
 
@@ -459,7 +464,7 @@ def _undistorted(model, images: Path, work: Path):
 
 def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
     """The ``transforms.json`` document (nerfstudio layout) of a pinhole ``model``'s images ``names``."""
-    by_name = {image.name: image for image in model.images.values() if image.has_pose}
+    by_name = _posed(model)
     first = by_name[names[0]]
     cam = model.cameras[first.camera_id]
     camera = camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height)
@@ -490,7 +495,7 @@ def folded_walk_note(views: Sequence[int]) -> str:
 
 def model_jumps(model, names: Sequence[str]) -> list[str]:
     """The photos of ``names`` (registered in ``model``, in file-name order) where a walk jumps (:func:`walk_jumps`)."""
-    by_name = {image.name: image for image in model.images.values() if image.has_pose}
+    by_name = _posed(model)
     rotations = np.array([np.asarray(by_name[name].cam_from_world().rotation.matrix()) for name in names])
     return [names[i] for i in walk_jumps(rotations)]
 
@@ -557,10 +562,9 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         attempt = work / matcher
         attempt.mkdir()
         model = reconstruct(prepared, names, attempt, replace(config, matcher=matcher), progress, seconds)
-        registered = [] if model is None else sorted(i.name for i in model.images.values() if i.has_pose)
-        missing = [n for n in names if n not in set(registered)]
+        registered = sorted(_posed(model))
         if len(registered) < MIN_PHOTOS or len(registered) < config.min_registered * len(names) - 1e-9:
-            raise _unregistered_error(folder, missing, len(names), config)
+            raise _unregistered_error(folder, [n for n in names if n not in set(registered)], len(names), config)
         jumps = model_jumps(model, registered)
         if jumps and config.matcher == "auto":  # a folded walk: match neighbours only, keep it if it folds less
             log.warning("%s: matching every pair folded the walk at %s (look-alike views from different sides); "
@@ -569,10 +573,10 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             retry.mkdir()
             again = reconstruct(prepared, names, retry, replace(config, matcher="sequential"), progress, seconds,
                                 features=attempt / "database.db")
-            kept = [] if again is None else sorted(i.name for i in again.images.values() if i.has_pose)
+            kept = sorted(_posed(again))
             if len(kept) >= len(registered) and len(kept_jumps := model_jumps(again, kept)) < len(jumps):
                 model, registered, matcher, jumps = again, kept, "sequential", kept_jumps
-                missing = [n for n in names if n not in set(registered)]
+        missing = [n for n in names if n not in set(registered)]
         if missing:
             log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
         t0 = time.perf_counter()
