@@ -13,6 +13,7 @@ from nerfmeta.data.sfm import (
     camera_from_colmap,
     jump_advice,
     colmap_world_to_camera,
+    essential_matrix,
     matrix_to_quaternion,
     near_far_from_depths,
     opengl_camera_to_world,
@@ -21,6 +22,7 @@ from nerfmeta.data.sfm import (
     prepared_size,
     quaternion_to_matrix,
     rotation_steps_deg,
+    sampson_distances,
     walk_jumps,
 )
 from nerfmeta.errors import SceneError
@@ -157,3 +159,29 @@ def test_jump_advice_names_the_photos_and_the_option() -> None:
     assert "--matcher sequential" in jump_advice(names[:1], SfmConfig())
     assert "--no-far-pairs" in jump_advice(names[:1], SfmConfig(matcher="sequential", far_pairs=True))
     assert "smaller --overlap than 10" in jump_advice(names[:1], SfmConfig(matcher="sequential"))
+
+
+def _project(rotation: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    cam = points @ rotation.T + t
+    return cam[:, :2] / cam[:, 2:]
+
+
+def test_true_correspondences_have_no_sampson_distance() -> None:
+    rng = np.random.default_rng(0)
+    r1 = quaternion_to_matrix(rng.normal(size=4))
+    r2 = quaternion_to_matrix(rng.normal(size=4))
+    t1, t2 = np.array([0.1, -0.2, 5.0]), np.array([-0.5, 0.3, 6.0])
+    points = rng.uniform(-1, 1, size=(50, 3))
+    e = essential_matrix(r1, t1, r2, t2)
+    assert sampson_distances(e, _project(r1, t1, points), _project(r2, t2, points)).max() < 1e-12
+    moved = _project(r2, t2, points) + rng.normal(scale=1e-2, size=(50, 2))
+    assert sampson_distances(e, _project(r1, t1, points), moved).min() > 0.0
+
+
+def test_sampson_distance_of_a_vertical_disparity_across_a_sideways_baseline() -> None:
+    # cameras side by side (baseline along x): epipolar lines are the rows, and a point seen d higher in the second
+    # image is d / sqrt(2) from the geometry (the nearest consistent pair moves each point by d / 2)
+    e = essential_matrix(np.eye(3), np.zeros(3), np.eye(3), np.array([-1.0, 0.0, 0.0]))
+    x1 = np.array([[0.3, 0.1], [-0.2, 0.4]])
+    x2 = x1 + np.array([[0.7, 0.02], [-0.1, -0.05]])  # any horizontal shift, vertical 0.02 and -0.05
+    assert np.allclose(sampson_distances(e, x1, x2), np.array([0.02, 0.05]) / math.sqrt(2), rtol=1e-12)

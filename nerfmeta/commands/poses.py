@@ -32,7 +32,7 @@ class PhaseBars:
         if phase != self.phase:
             self.close()
             self.phase = phase
-            unit = "photo" if phase in ("photos", "mapping") else "step"
+            unit = "photo" if phase == "photos" or phase.startswith("mapping") else "step"
             self.bar = tqdm(total=total, desc=PHASES.get(phase, phase), unit=unit, file=sys.stderr, dynamic_ncols=True)
         self.bar.n = done
         self.bar.refresh()
@@ -47,7 +47,7 @@ def add_sfm_options(parser: argparse.ArgumentParser) -> None:
     """The :class:`SfmConfig` options (shared with ``nerfmeta fit PHOTOS``)."""
     options.add_config_options(parser, SfmConfig, metavars={"max_side": "PX", "max_features": "N", "min_registered": "F",
                                                             "threads": "N", "seed": "S", "camera_model": "MODEL",
-                                                            "matcher": "KIND", "overlap": "N"})
+                                                            "matcher": "KIND", "overlap": "N", "map_draws": "N"})
 
 
 def sfm_config_from(args: argparse.Namespace) -> SfmConfig:

@@ -16,7 +16,12 @@ neighbours in file-name order for a video's frames); incremental mapping (the la
 undistortion; conversion. No vocabulary tree is used (nothing is downloaded). The default matcher,
 ``auto``, matches every pair and, when the model folds a walk (:func:`walk_jumps`: neighbours more than
 90 degrees apart, as look-alike sides of a symmetric scene make it), matches neighbours only, reusing
-the features, and keeps the model that folds less.
+the features, and keeps the model that folds less. COLMAP's mapping is not repeatable on several
+threads, and a draw of it can bend a walk at one photo (on beer 5 draws in 20 turned the second part
+of the walk 10-15 degrees against the first, with a normal reprojection error); so the neighbours'
+matches are mapped ``map_draws`` times and the draw kept whose poses explain the most of every pair's
+verified matches (:func:`match_agreement`: the far pairs, which the neighbours' model never saw, tell a
+whole walk from a bent one).
 
 Conventions (:func:`opengl_camera_to_world`): COLMAP stores world-to-camera ``(q, t)`` with the
 OpenCV camera (x right, y down, looking along +z); nerfmeta, like nerfstudio, uses OpenGL
@@ -107,6 +112,11 @@ class SfmConfig:
     """Threads COLMAP uses (-1: all cores)."""
     seed: int = bounded(0, low=0)
     """Seed of COLMAP's random sampling (RANSAC, mapping)."""
+    map_draws: int = bounded(3, low=1)
+    """``auto``, when it falls back to neighbours: how many times their matches are mapped (seeds ``seed``,
+    ``seed + 1``, ...); the draw whose poses explain the most of every pair's verified matches is kept
+    (:func:`match_agreement`). One draw in four bent beer's walk (0.50 of the matches explained against 0.63); each
+    draw costs one mapping (about 5 s on beer's 71 photos at 720 x 1280)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -243,6 +253,26 @@ def walk_jumps(rotations: np.ndarray, *, jump_deg: float = JUMP_DEG) -> list[int
     return [int(i) + 1 for i in np.flatnonzero(steps > jump_deg)]
 
 
+def essential_matrix(rotation1: np.ndarray, t1: np.ndarray, rotation2: np.ndarray, t2: np.ndarray) -> np.ndarray:
+    """(3, 3) essential matrix ``E`` of two world-to-camera poses ``x_cam = R x_world + t`` (COLMAP's): ``x2^T E x1 = 0``
+    for the normalised image points ``x1``, ``x2`` (homogeneous) of one world point."""
+    rotation = np.asarray(rotation2, dtype=np.float64) @ np.asarray(rotation1, dtype=np.float64).T
+    t = np.asarray(t2, dtype=np.float64) - rotation @ np.asarray(t1, dtype=np.float64)
+    cross = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return cross @ rotation
+
+
+def sampson_distances(essential: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """(N,) Sampson distances (first-order geometric error, in normalised image units) of correspondences
+    ``x1 -> x2`` ((N, 2) normalised points each) from the epipolar geometry ``essential`` (3, 3)."""
+    h1 = np.concatenate([np.asarray(x1, dtype=np.float64), np.ones((len(x1), 1))], 1)
+    h2 = np.concatenate([np.asarray(x2, dtype=np.float64), np.ones((len(x2), 1))], 1)
+    lines2, lines1 = h1 @ essential.T, h2 @ essential  # epipolar lines E x1 (in image 2) and E^T x2 (in image 1)
+    residual = np.abs((h2 * lines2).sum(1))
+    norm = np.sqrt(lines2[:, 0] ** 2 + lines2[:, 1] ** 2 + lines1[:, 0] ** 2 + lines1[:, 1] ** 2)
+    return residual / np.maximum(norm, np.finfo(np.float64).tiny)
+
+
 def photo_hash(paths: Sequence[Path], config: SfmConfig) -> str:
     """A hex key of the photos' names and contents and of ``config`` (what a cached SfM scene was made from)."""
     digest = hashlib.sha256(json.dumps(asdict(config), sort_keys=True).encode())
@@ -370,15 +400,63 @@ class SfmResult:
     """The matcher whose model was kept (``auto`` resolves to ``exhaustive`` or ``sequential``)."""
     jumps: tuple[str, ...] = ()
     """Photos of a walk whose camera turns by more than :data:`JUMP_DEG` from the previous one (:func:`walk_jumps`)."""
+    draws: tuple[dict, ...] = ()
+    """The neighbours' mapping draws, when there were several: seed, registered, jumps, agreement, and which was kept."""
 
     def as_json(self) -> dict:
         return {**asdict(self), "scene": str(self.scene), "registered": list(self.registered),
-                "unregistered": list(self.unregistered), "jumps": list(self.jumps)}
+                "unregistered": list(self.unregistered), "jumps": list(self.jumps), "draws": list(self.draws)}
 
 
 def _posed(model) -> dict:
     """The images of ``model`` that have a pose, by name (none for no model)."""
     return {} if model is None else {image.name: image for image in model.images.values() if image.has_pose}
+
+
+AGREE_PX = 2.0
+"""A verified match is explained by a model when its Sampson distance from the model's epipolar geometry is below this (pixels)."""
+
+
+def match_agreement(model, database: Path, *, tol_px: float = AGREE_PX) -> float:
+    """The share of the verified matches in ``database`` (every matched pair whose photos ``model`` posed) that
+    ``model``'s poses explain: Sampson distance (:func:`sampson_distances`) under ``tol_px`` pixels.
+
+    Look-alike views of a symmetric scene leave some verified matches that no true model explains, so the share
+    is never near 1; what it tells is which of several models of the same photos is the most consistent. A model
+    mapped from neighbours' matches never saw the far pairs, and only a walk kept whole explains them.
+    """
+    import pycolmap
+
+    posed = _posed(model)
+    db = pycolmap.Database.open(database)
+    try:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        points: dict[int, np.ndarray] = {}
+
+        def normalised(image_id: int) -> np.ndarray:
+            if image_id not in points:
+                camera = model.cameras[posed[names[image_id]].camera_id]
+                points[image_id] = np.asarray(camera.cam_from_img(np.asarray(db.read_keypoints(image_id))[:, :2]))
+            return points[image_id]
+
+        explained = total = 0
+        for pair_id, geometry in zip(pair_ids, geometries):
+            i, j = pycolmap.pair_id_to_image_pair(pair_id)
+            matches = np.asarray(geometry.inlier_matches).reshape(-1, 2)
+            if names[i] not in posed or names[j] not in posed or not len(matches):
+                continue
+            a, b = posed[names[i]], posed[names[j]]
+            pose_a, pose_b = a.cam_from_world(), b.cam_from_world()
+            essential = essential_matrix(pose_a.rotation.matrix(), pose_a.translation, pose_b.rotation.matrix(),
+                                         pose_b.translation)
+            focal = math.sqrt(model.cameras[a.camera_id].mean_focal_length() * model.cameras[b.camera_id].mean_focal_length())
+            error = sampson_distances(essential, normalised(i)[matches[:, 0]], normalised(j)[matches[:, 1]]) * focal
+            explained += int((error < tol_px).sum())
+            total += len(matches)
+    finally:
+        db.close()
+    return explained / total if total else 0.0
 
 
 def _largest_model(models: dict) -> "object | None":
@@ -429,25 +507,60 @@ def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfi
         pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
     progress("matching", 1, 1)
     seconds["matching"] = seconds.get("matching", 0.0) + time.perf_counter() - t0
+    return map_matches(database, images, len(names), work / "sparse", config, progress, seconds)
+
+
+def map_matches(database: Path, images: Path, photos: int, sparse: Path, config: SfmConfig, progress: Progress,
+                seconds: dict[str, float], *, seed: int | None = None, phase: str = "mapping"):
+    """Incremental mapping of the matches in ``database`` into the new folder ``sparse``; the largest model (or None).
+
+    ``seed`` (default ``config.seed``) seeds COLMAP's sampling; on several threads the result still varies from
+    run to run. ``phase`` names the progress bar (over the ``photos`` photos).
+    """
+    import pycolmap
+
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = config.threads
-    mapping.random_seed = config.seed
+    mapping.random_seed = config.seed if seed is None else seed
     mapping.min_model_size = MIN_PHOTOS
     registered = [0]
 
     def next_image() -> None:
         registered[0] += 1
-        progress("mapping", min(registered[0], len(names)), len(names))
+        progress(phase, min(registered[0], photos), photos)
 
     t0 = time.perf_counter()
-    progress("mapping", 0, len(names))
-    sparse = work / "sparse"
+    progress(phase, 0, photos)
     sparse.mkdir()
     models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
     seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t0
     model = _largest_model(models)
-    progress("mapping", 0 if model is None else model.num_reg_images(), len(names))
+    progress(phase, 0 if model is None else model.num_reg_images(), photos)
     return model
+
+
+def best_draw(first, work: Path, images: Path, names: Sequence[str], every_pair: Path, config: SfmConfig,
+              progress: Progress, seconds: dict[str, float]):
+    """``(model, draws)``: of ``first`` (mapped in ``work``) and ``config.map_draws - 1`` more mappings of the same
+    matches (seeds ``config.seed + k``), the one that registers the most photos, then folds the least, then agrees
+    best with the verified matches of every pair in ``every_pair`` (:func:`match_agreement`); ``draws`` describes
+    each (none for a single draw)."""
+    if config.map_draws <= 1:
+        return first, ()
+    models = [first]
+    for k in range(1, config.map_draws):
+        models.append(map_matches(work / "database.db", images, len(names), work / f"sparse-{k}", config, progress,
+                                  seconds, seed=config.seed + k, phase=f"mapping, draw {k + 1} of {config.map_draws}"))
+    t0 = time.perf_counter()
+    rows = []
+    for k, model in enumerate(models):
+        posed = sorted(_posed(model))
+        agreement = match_agreement(model, every_pair) if posed else 0.0
+        rows.append({"seed": config.seed + k, "registered": len(posed),
+                     "jumps": len(model_jumps(model, posed)) if posed else 0, "agreement": round(agreement, 4)})
+    seconds["agreement"] = seconds.get("agreement", 0.0) + time.perf_counter() - t0
+    best = max(range(len(models)), key=lambda k: (rows[k]["registered"], -rows[k]["jumps"], rows[k]["agreement"]))
+    return models[best], tuple({**row, "kept": k == best} for k, row in enumerate(rows))
 
 
 def _undistorted(model, images: Path, work: Path):
@@ -559,6 +672,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         progress("photos", len(paths), len(paths))
         seconds["photos"] = time.perf_counter() - t0
         matcher = "exhaustive" if config.matcher == "auto" else config.matcher
+        draws: tuple[dict, ...] = ()
         attempt = work / matcher
         attempt.mkdir()
         model = reconstruct(prepared, names, attempt, replace(config, matcher=matcher), progress, seconds)
@@ -573,9 +687,12 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             retry.mkdir()
             again = reconstruct(prepared, names, retry, replace(config, matcher="sequential"), progress, seconds,
                                 features=attempt / "database.db")
+            again, draws = best_draw(again, retry, prepared, names, attempt / "database.db", config, progress, seconds)
             kept = sorted(_posed(again))
             if len(kept) >= len(registered) and len(kept_jumps := model_jumps(again, kept)) < len(jumps):
                 model, registered, matcher, jumps = again, kept, "sequential", kept_jumps
+            else:
+                draws = ()
         missing = [n for n in names if n not in set(registered)]
         if missing:
             log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
@@ -595,7 +712,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             log.warning("%s: %s", folder, jump_advice(jumps, config))
         result = SfmResult(run.path, len(names), tuple(registered), tuple(missing),
                            float(model.compute_mean_reprojection_error()), int(model.num_points3D()),
-                           {k: round(v, 3) for k, v in seconds.items()}, matcher, tuple(jumps))
+                           {k: round(v, 3) for k, v in seconds.items()}, matcher, tuple(jumps), draws)
         write_json(run.dir / REPORT, {**result.as_json(), "config": asdict(config)})
         write_json(run.dir / TRANSFORMS, doc)
     return result
