@@ -200,10 +200,12 @@ class VoxelGridConfig:
     """Fine steps between occupancy-cache pruning (0: never prune)."""
     growth_steps: tuple[int, ...] = (100, 200, 300)
     """Fine-stage steps at which the grids double their voxel count."""
-    growth_cutoff: float = 0.8
+    growth_cutoff: float = 0.7
     """A growth falling due after this fraction of the fit's length (its iterations or time budget) is skipped, with
-    the ones after it: a grid grown that late has too few steps left to use its new voxels, and each costs more
-    (1: never skipped)."""
+    the ones after it: a grid grown that late has too few steps left to use its new voxels, and each step and every
+    later render costs more (1: never skipped). On beer's 120-s CPU fit the second growth falls due at 77-80 % of the
+    time (steps after a growth are slower, so that is about 88 % of the steps): skipped, +0.10 dB and 25 % fewer
+    samples per test ray (BENCHMARKS.md #16, session 25); 0.8 kept it on a faster day."""
     world_bound_scale: float = 1.05
     """Scale of the tightened fine box about its centre."""
     coarse_lr_density: float = 0.3
@@ -255,7 +257,7 @@ class VoxelGridConfig:
             ("occupancy_every", self.occupancy_every >= 0, "use 0 (never) or more"),
             ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
              "use increasing positive fine-stage steps, e.g. [100, 200]"),
-            ("growth_cutoff", 0.0 < self.growth_cutoff <= 1.0, "use a fraction of the fit in (0, 1], e.g. 0.8"),
+            ("growth_cutoff", 0.0 < self.growth_cutoff <= 1.0, "use a fraction of the fit in (0, 1], e.g. 0.7"),
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
               for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
