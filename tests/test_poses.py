@@ -96,16 +96,17 @@ def test_auto_matches_neighbours_when_every_pair_folds_a_walk(arc, tmp_path: Pat
     folder, true = arc
     seen = _first_model_folds(monkeypatch)
     result = compute_poses(folder, tmp_path / "scene", SfmConfig(threads=1))
-    # every pair (folded), the three draws of the neighbours' matches, and the kept draw against the first model
-    assert len(seen) == 5 and result.matcher == "sequential" and result.jumps == ()
+    # every pair (folded), the seven draws of the neighbours' matches, and the kept draw against the first model
+    assert len(seen) == 9 and result.matcher == "sequential" and result.jumps == ()
     assert f"folded the walk at {seen[0][3]}" in caplog.text and "with its next 10 only" in caplog.text
     estimated = np.array([f["transform_matrix"] for f in json.loads((tmp_path / "scene" / "transforms.json").read_text())["frames"]])
     rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
     assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE
     report = json.loads((tmp_path / "scene" / "sfm.json").read_text())
     assert report["matcher"] == "sequential"
-    # the neighbours' matches were mapped three times (seeds 0, 1, 2) and the best-agreeing draw kept
-    assert [d["seed"] for d in result.draws] == [0, 1, 2] and sum(d["kept"] for d in result.draws) == 1
+    # the neighbours' matches were mapped six times (seeds 0-5) and once globally, and the best-agreeing draw kept
+    assert [(d["mapper"], d["seed"]) for d in result.draws] == [("incremental", k) for k in range(6)] + [("global", 0)]
+    assert sum(d["kept"] for d in result.draws) == 1 and all(d["registered"] == VIEWS for d in result.draws)
     kept = next(d for d in result.draws if d["kept"])
     assert kept["registered"] == VIEWS and kept["agreement"] == max(d["agreement"] for d in result.draws) > 0.9
     assert report["draws"] == list(result.draws)
@@ -130,18 +131,20 @@ def test_a_bent_walk_explains_fewer_matches_and_is_not_kept(arc, tmp_path: Path,
 
     folder, _ = arc
     names = sorted(p.name for p in folder.iterdir())
-    config = SfmConfig(threads=1)
+    config = SfmConfig(threads=1, map_draws=3)
     whole = reconstruct(folder, names, tmp_path, config, lambda *_: None, {})
     database = tmp_path / "database.db"
     bent = _bent(whole, set(names[VIEWS // 2:]), 3.0)
     assert match_agreement(whole, database) > 0.95  # exact renders: nearly every verified match fits
     assert match_agreement(bent, database) < match_agreement(whole, database) - 0.1  # 0.81 against 1.00
-    for first, others, expect in ((whole, [bent, bent], 0), (bent, [bent, whole], 2)):
+    for first, others, expect in ((whole, [bent, bent, bent], 0), (bent, [bent, whole, bent], 2), (bent, [bent, bent, whole], 3)):
         later = iter(others)
         monkeypatch.setattr(sfm, "map_matches", lambda *args, **kwargs: next(later))
         model, draws = best_draw(first, tmp_path, folder, names, database, config, lambda *_: None, {})
-        assert model is (whole if expect == 0 else others[1]) and [d["kept"] for d in draws] == [k == expect for k in range(3)]
-    assert best_draw(bent, tmp_path, folder, names, database, SfmConfig(threads=1, map_draws=1), lambda *_: None, {}) == (bent, ())
+        assert model is whole and [d["kept"] for d in draws] == [k == expect for k in range(4)]
+        assert [d["mapper"] for d in draws] == ["incremental"] * 3 + ["global"]
+    alone = SfmConfig(threads=1, map_draws=1, global_draw=False)
+    assert best_draw(bent, tmp_path, folder, names, database, alone, lambda *_: None, {}) == (bent, ())
 
 
 def test_a_chosen_matcher_is_kept_and_its_fold_named(arc, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

@@ -17,11 +17,12 @@ undistortion; conversion. No vocabulary tree is used (nothing is downloaded). Th
 ``auto``, matches every pair and, when the model folds a walk (:func:`walk_jumps`: neighbours more than
 90 degrees apart, as look-alike sides of a symmetric scene make it), matches neighbours only, reusing
 the features, and keeps the model that folds less. COLMAP's mapping is not repeatable on several
-threads, and a draw of it can bend a walk at one photo (on beer 5 draws in 20 turned the second part
-of the walk 10-15 degrees against the first, with a normal reprojection error); so the neighbours'
-matches are mapped ``map_draws`` times and the draw kept whose poses explain the most of every pair's
-verified matches (:func:`match_agreement`: the far pairs, which the neighbours' model never saw, tell a
-whole walk from a bent one).
+threads, and a draw of it can bend a walk at one photo (on beer from 1 draw in 4 to 2 in 3, with the
+matches of different runs, turned part of the walk 10-15 degrees, with a normal reprojection error); so the neighbours'
+matches are mapped ``map_draws`` times, and once more by GLOMAP's global mapper (``global_draw``: some
+runs' matches bend the incremental mapper on most seeds), and the draw kept whose poses explain the most
+of every pair's verified matches (:func:`match_agreement`: the far pairs, which the neighbours' model
+never saw, tell a whole walk from a bent one).
 
 Conventions (:func:`opengl_camera_to_world`): COLMAP stores world-to-camera ``(q, t)`` with the
 OpenCV camera (x right, y down, looking along +z); nerfmeta, like nerfstudio, uses OpenGL
@@ -112,11 +113,16 @@ class SfmConfig:
     """Threads COLMAP uses (-1: all cores)."""
     seed: int = bounded(0, low=0)
     """Seed of COLMAP's random sampling (RANSAC, mapping)."""
-    map_draws: int = bounded(3, low=1)
-    """``auto``, when it falls back to neighbours: how many times their matches are mapped (seeds ``seed``,
-    ``seed + 1``, ...); the draw whose poses explain the most of every pair's verified matches is kept
-    (:func:`match_agreement`). One draw in four bent beer's walk (0.50 of the matches explained against 0.63); each
-    draw costs one mapping (about 5 s on beer's 71 photos at 720 x 1280)."""
+    map_draws: int = bounded(6, low=1)
+    """``auto``, when it falls back to neighbours: how many times the incremental mapper maps their matches (seeds
+    ``seed``, ``seed + 1``, ...); the draw whose poses explain the most of every pair's verified matches is kept
+    (:func:`match_agreement`). On beer a draw bent the walk (0.50 of the matches explained against 0.56-0.64) in 5 of
+    20, 8 of 12 and 3 of 4 draws on three runs' matches; each draw costs one mapping (about 5 s on beer's 71 photos
+    at 720 x 1280)."""
+    global_draw: bool = True
+    """``auto``, when it falls back to neighbours: one more draw by GLOMAP's global mapper (``pycolmap.global_mapping``),
+    scored with the incremental draws; its failures are not the incremental mapper's (on the run whose draws bent
+    3 times in 4 it explained 0.64 of the matches; 5-8 s on beer)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -511,18 +517,17 @@ def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfi
 
 
 def map_matches(database: Path, images: Path, photos: int, sparse: Path, config: SfmConfig, progress: Progress,
-                seconds: dict[str, float], *, seed: int | None = None, phase: str = "mapping"):
-    """Incremental mapping of the matches in ``database`` into the new folder ``sparse``; the largest model (or None).
+                seconds: dict[str, float], *, seed: int | None = None, phase: str = "mapping",
+                mapper: Literal["incremental", "global"] = "incremental"):
+    """Mapping of the matches in ``database`` into the new folder ``sparse``; the largest model (or None).
 
-    ``seed`` (default ``config.seed``) seeds COLMAP's sampling; on several threads the result still varies from
-    run to run. ``phase`` names the progress bar (over the ``photos`` photos).
+    ``mapper``: COLMAP's incremental mapper (photo by photo, with bundle adjustment as it goes) or GLOMAP's global one
+    (:func:`pycolmap.global_mapping`: every rotation at once, then every position, then bundle adjustment), whose
+    failures are not the incremental mapper's. ``seed`` (default ``config.seed``) seeds the sampling; on several
+    threads the result still varies from run to run. ``phase`` names the progress bar (over the ``photos`` photos).
     """
     import pycolmap
 
-    mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.num_threads = config.threads
-    mapping.random_seed = config.seed if seed is None else seed
-    mapping.min_model_size = MIN_PHOTOS
     registered = [0]
 
     def next_image() -> None:
@@ -532,7 +537,18 @@ def map_matches(database: Path, images: Path, photos: int, sparse: Path, config:
     t0 = time.perf_counter()
     progress(phase, 0, photos)
     sparse.mkdir()
-    models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
+    if mapper == "global":
+        options = pycolmap.GlobalPipelineOptions()
+        options.num_threads = config.threads
+        options.random_seed = config.seed if seed is None else seed
+        options.min_model_size = MIN_PHOTOS
+        models = pycolmap.global_mapping(database, images, sparse, options=options)
+    else:
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = config.threads
+        mapping.random_seed = config.seed if seed is None else seed
+        mapping.min_model_size = MIN_PHOTOS
+        models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
     seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t0
     model = _largest_model(models)
     progress(phase, 0 if model is None else model.num_reg_images(), photos)
@@ -541,26 +557,30 @@ def map_matches(database: Path, images: Path, photos: int, sparse: Path, config:
 
 def best_draw(first, work: Path, images: Path, names: Sequence[str], every_pair: Path, config: SfmConfig,
               progress: Progress, seconds: dict[str, float]):
-    """``(model, draws)``: of ``first`` (mapped in ``work``) and ``config.map_draws - 1`` more mappings of the same
-    matches (seeds ``config.seed + k``), the one that registers the most photos, then folds the least, then agrees
-    best with the verified matches of every pair in ``every_pair`` (:func:`match_agreement`); ``draws`` describes
-    each (none for a single draw)."""
-    if config.map_draws <= 1:
+    """``(model, draws)``: of ``first`` (mapped in ``work``), ``config.map_draws - 1`` more incremental mappings of the
+    same matches (seeds ``config.seed + k``) and, with ``config.global_draw``, one global mapping of them, the one that
+    registers the most photos, then folds the least, then agrees best with the verified matches of every pair in
+    ``every_pair`` (:func:`match_agreement`); ``draws`` describes each (none for a single draw)."""
+    plan = [("incremental", config.seed + k) for k in range(1, config.map_draws)]
+    plan += [("global", config.seed)] if config.global_draw else []
+    if not plan:
         return first, ()
-    models = [first]
-    for k in range(1, config.map_draws):
+    models, rows = [first], [("incremental", config.seed)]
+    for k, (mapper, seed) in enumerate(plan, start=2):
         models.append(map_matches(work / "database.db", images, len(names), work / f"sparse-{k}", config, progress,
-                                  seconds, seed=config.seed + k, phase=f"mapping, draw {k + 1} of {config.map_draws}"))
+                                  seconds, seed=seed, mapper=mapper,  # type: ignore[arg-type]
+                                  phase=f"mapping, draw {k} of {len(plan) + 1}" + (" (global)" if mapper == "global" else "")))
+        rows.append((mapper, seed))
     t0 = time.perf_counter()
-    rows = []
-    for k, model in enumerate(models):
+    draws = []
+    for model, (mapper, seed) in zip(models, rows):
         posed = sorted(_posed(model))
-        agreement = match_agreement(model, every_pair) if posed else 0.0
-        rows.append({"seed": config.seed + k, "registered": len(posed),
-                     "jumps": len(model_jumps(model, posed)) if posed else 0, "agreement": round(agreement, 4)})
+        draws.append({"mapper": mapper, "seed": seed, "registered": len(posed),
+                      "jumps": len(model_jumps(model, posed)) if posed else 0,
+                      "agreement": round(match_agreement(model, every_pair), 4) if posed else 0.0})
     seconds["agreement"] = seconds.get("agreement", 0.0) + time.perf_counter() - t0
-    best = max(range(len(models)), key=lambda k: (rows[k]["registered"], -rows[k]["jumps"], rows[k]["agreement"]))
-    return models[best], tuple({**row, "kept": k == best} for k, row in enumerate(rows))
+    best = max(range(len(models)), key=lambda k: (draws[k]["registered"], -draws[k]["jumps"], draws[k]["agreement"]))
+    return models[best], tuple({**row, "kept": k == best} for k, row in enumerate(draws))
 
 
 def _undistorted(model, images: Path, work: Path):
