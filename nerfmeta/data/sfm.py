@@ -17,7 +17,7 @@ undistortion; conversion. No vocabulary tree is used (nothing is downloaded). Th
 ``auto``, matches every pair and, when the model folds a walk (:func:`walk_jumps`: neighbours more than
 90 degrees apart, as look-alike sides of a symmetric scene make it), matches neighbours only, reusing
 the features, and keeps the model that folds less. COLMAP's mapping is not repeatable on several
-threads, and a draw of it can bend a walk at one photo (on beer from 1 draw in 4 to 2 in 3, with the
+threads, and a draw of it can bend a walk at one photo (on beer from 1 draw in 4 to every draw, with the
 matches of different runs, turned part of the walk 10-15 degrees, with a normal reprojection error); so the neighbours'
 matches are mapped ``map_draws`` times, and once more by GLOMAP's global mapper (``global_draw``: some
 runs' matches bend the incremental mapper on most seeds), and the draw kept whose poses explain the most
@@ -117,7 +117,7 @@ class SfmConfig:
     """``auto``, when it falls back to neighbours: how many times the incremental mapper maps their matches (seeds
     ``seed``, ``seed + 1``, ...); the draw whose poses explain the most of every pair's verified matches is kept
     (:func:`match_agreement`). On beer a draw bent the walk (0.50 of the matches explained against 0.56-0.64) in 5 of
-    20, 8 of 12 and 3 of 4 draws on three runs' matches; each draw costs one mapping (about 5 s on beer's 71 photos
+    20, 8 of 12, 3 of 4 and 3 of 3 draws on four runs' matches; each draw costs one mapping (about 5 s on beer's 71 photos
     at 720 x 1280)."""
     global_draw: bool = True
     """``auto``, when it falls back to neighbours: one more draw by GLOMAP's global mapper (``pycolmap.global_mapping``),
@@ -407,7 +407,7 @@ class SfmResult:
     jumps: tuple[str, ...] = ()
     """Photos of a walk whose camera turns by more than :data:`JUMP_DEG` from the previous one (:func:`walk_jumps`)."""
     draws: tuple[dict, ...] = ()
-    """The neighbours' mapping draws, when there were several: seed, registered, jumps, agreement, and which was kept."""
+    """The neighbours' mapping draws, when there were several: mapper, seed, registered, jumps, agreement, and which was kept."""
 
     def as_json(self) -> dict:
         return {**asdict(self), "scene": str(self.scene), "registered": list(self.registered),
