@@ -22,7 +22,7 @@ import sfm_scenes  # noqa: E402
 from nerfmeta.cli import main  # noqa: E402
 from nerfmeta.data.registry import load_scene  # noqa: E402
 from nerfmeta.data.sfm import (SfmConfig, best_draw, cached_poses, compute_poses, match_agreement, prepare_photo,  # noqa: E402
-                               reconstruct)
+                               read_verified_matches, reconstruct)
 from nerfmeta.errors import SceneError  # noqa: E402
 
 HEIGHT, WIDTH, VIEWS, TURN = 192, 256, 10, 0.4
@@ -135,8 +135,9 @@ def test_a_bent_walk_explains_fewer_matches_and_is_not_kept(arc, tmp_path: Path,
     whole = reconstruct(folder, names, tmp_path, config, lambda *_: None, {})
     database = tmp_path / "database.db"
     bent = _bent(whole, set(names[VIEWS // 2:]), 3.0)
-    assert match_agreement(whole, database) > 0.95  # exact renders: nearly every verified match fits
-    assert match_agreement(bent, database) < match_agreement(whole, database) - 0.1  # 0.81 against 1.00
+    matches = read_verified_matches(database)
+    assert match_agreement(whole, matches) > 0.95  # exact renders: nearly every verified match fits
+    assert match_agreement(bent, matches) < match_agreement(whole, matches) - 0.1  # 0.81 against 1.00
     for first, others, expect in ((whole, [bent, bent, bent], 0), (bent, [bent, whole, bent], 2), (bent, [bent, bent, whole], 3)):
         later = iter(others)
         monkeypatch.setattr(sfm, "map_matches", lambda *args, **kwargs: next(later))

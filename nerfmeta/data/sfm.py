@@ -423,45 +423,67 @@ AGREE_PX = 2.0
 """A verified match is explained by a model when its Sampson distance from the model's epipolar geometry is below this (pixels)."""
 
 
-def match_agreement(model, database: Path, *, tol_px: float = AGREE_PX) -> float:
-    """The share of the verified matches in ``database`` (every matched pair whose photos ``model`` posed) that
-    ``model``'s poses explain: Sampson distance (:func:`sampson_distances`) under ``tol_px`` pixels.
+@dataclass(frozen=True)
+class VerifiedMatches:
+    """Every matched pair's verified (inlier) matches in a COLMAP database, read once to score several models."""
+
+    keypoints: dict[str, np.ndarray]
+    """(K, 2) pixel positions of each photo's keypoints, by name (photos in a verified pair only)."""
+    pairs: tuple[tuple[str, str, np.ndarray], ...]
+    """``(photo a, photo b, (M, 2) keypoint indices in a and b)`` of every pair with verified matches."""
+
+
+def read_verified_matches(database: Path) -> VerifiedMatches:
+    """The verified matches of every pair in ``database`` and the keypoints they refer to."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        names = {image.image_id: image.name for image in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        pairs, keypoints = [], {}
+        for pair_id, geometry in zip(pair_ids, geometries):
+            matches = np.asarray(geometry.inlier_matches).reshape(-1, 2)
+            if not len(matches):
+                continue
+            ids = pycolmap.pair_id_to_image_pair(pair_id)
+            for image_id in ids:
+                if names[image_id] not in keypoints:
+                    keypoints[names[image_id]] = np.asarray(db.read_keypoints(image_id))[:, :2]
+            pairs.append((names[ids[0]], names[ids[1]], matches))
+    finally:
+        db.close()
+    return VerifiedMatches(keypoints, tuple(pairs))
+
+
+def match_agreement(model, matches: VerifiedMatches, *, tol_px: float = AGREE_PX) -> float:
+    """The share of the verified ``matches`` (of every pair whose photos ``model`` posed) that ``model``'s poses
+    explain: Sampson distance (:func:`sampson_distances`) under ``tol_px`` pixels.
 
     Look-alike views of a symmetric scene leave some verified matches that no true model explains, so the share
     is never near 1; what it tells is which of several models of the same photos is the most consistent. A model
     mapped from neighbours' matches never saw the far pairs, and only a walk kept whole explains them.
     """
-    import pycolmap
-
     posed = _posed(model)
-    db = pycolmap.Database.open(database)
-    try:
-        names = {image.image_id: image.name for image in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
-        points: dict[int, np.ndarray] = {}
+    points: dict[str, np.ndarray] = {}
 
-        def normalised(image_id: int) -> np.ndarray:
-            if image_id not in points:
-                camera = model.cameras[posed[names[image_id]].camera_id]
-                points[image_id] = np.asarray(camera.cam_from_img(np.asarray(db.read_keypoints(image_id))[:, :2]))
-            return points[image_id]
+    def normalised(name: str) -> np.ndarray:
+        if name not in points:
+            points[name] = np.asarray(model.cameras[posed[name].camera_id].cam_from_img(matches.keypoints[name]))
+        return points[name]
 
-        explained = total = 0
-        for pair_id, geometry in zip(pair_ids, geometries):
-            i, j = pycolmap.pair_id_to_image_pair(pair_id)
-            matches = np.asarray(geometry.inlier_matches).reshape(-1, 2)
-            if names[i] not in posed or names[j] not in posed or not len(matches):
-                continue
-            a, b = posed[names[i]], posed[names[j]]
-            pose_a, pose_b = a.cam_from_world(), b.cam_from_world()
-            essential = essential_matrix(pose_a.rotation.matrix(), pose_a.translation, pose_b.rotation.matrix(),
-                                         pose_b.translation)
-            focal = math.sqrt(model.cameras[a.camera_id].mean_focal_length() * model.cameras[b.camera_id].mean_focal_length())
-            error = sampson_distances(essential, normalised(i)[matches[:, 0]], normalised(j)[matches[:, 1]]) * focal
-            explained += int((error < tol_px).sum())
-            total += len(matches)
-    finally:
-        db.close()
+    explained = total = 0
+    for name_a, name_b, pair in matches.pairs:
+        if name_a not in posed or name_b not in posed:
+            continue
+        a, b = posed[name_a], posed[name_b]
+        pose_a, pose_b = a.cam_from_world(), b.cam_from_world()
+        essential = essential_matrix(pose_a.rotation.matrix(), pose_a.translation, pose_b.rotation.matrix(),
+                                     pose_b.translation)
+        focal = math.sqrt(model.cameras[a.camera_id].mean_focal_length() * model.cameras[b.camera_id].mean_focal_length())
+        error = sampson_distances(essential, normalised(name_a)[pair[:, 0]], normalised(name_b)[pair[:, 1]]) * focal
+        explained += int((error < tol_px).sum())
+        total += len(pair)
     return explained / total if total else 0.0
 
 
@@ -572,12 +594,13 @@ def best_draw(first, work: Path, images: Path, names: Sequence[str], every_pair:
                                   phase=f"mapping, draw {k} of {len(plan) + 1}" + (" (global)" if mapper == "global" else "")))
         rows.append((mapper, seed))
     t0 = time.perf_counter()
+    matches = read_verified_matches(every_pair)
     draws = []
     for model, (mapper, seed) in zip(models, rows):
         posed = sorted(_posed(model))
         draws.append({"mapper": mapper, "seed": seed, "registered": len(posed),
                       "jumps": len(model_jumps(model, posed)) if posed else 0,
-                      "agreement": round(match_agreement(model, every_pair), 4) if posed else 0.0})
+                      "agreement": round(match_agreement(model, matches), 4) if posed else 0.0})
     seconds["agreement"] = seconds.get("agreement", 0.0) + time.perf_counter() - t0
     best = max(range(len(models)), key=lambda k: (draws[k]["registered"], -draws[k]["jumps"], draws[k]["agreement"]))
     return models[best], tuple({**row, "kept": k == best} for k, row in enumerate(draws))
