@@ -12,6 +12,7 @@ from nerfmeta.data import load_scene
 from nerfmeta.fields.registry import config_from_dict
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 from nerfmeta.fit.loop import FitConfig, fit
+from nerfmeta.fit.run import RunConfig
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.metrics import mse_to_psnr
 
@@ -94,3 +95,13 @@ def test_contracted_fit_learns_and_its_structure_round_trips(scenes):
     rays = view_rays(scene, scene.splits["test"][1], "cpu")
     with torch.no_grad():
         assert torch.equal(model(rays, background=WHITE).rgb, other(rays, background=WHITE).rgb)
+
+
+def test_unbounded_scenes_default_to_the_view_dependence_trial_and_set_still_wins(scenes):
+    """An unbounded capture's grid decides per scene whether to keep the colour MLP (``view_dependent="auto"``,
+    the scene type's default); an object scene keeps it always, and ``--set`` overrides either."""
+    run = RunConfig(scene="x", backbone="grid")
+    assert run.model_config(scenes["unbounded"]).view_dependent == "auto"
+    assert run.model_config(scenes["auto"]).view_dependent is True  # the tiny scene is an object on white
+    kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
+    assert kept.model_config(scenes["unbounded"]).view_dependent is True

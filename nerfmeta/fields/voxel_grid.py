@@ -147,11 +147,25 @@ Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1
 and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
+UNBOUNDED_DEFAULTS: dict[str, Any] = {"view_dependent": "auto"}
+"""Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
+
+``view_dependent`` is the per-scene trial (``"auto"``) rather than the MLP always: every ray of such a capture
+ends on something, so most of its samples carry weight and are colour-decoded (beer at 178 x 316, grown grid:
+about 490k decoded samples a 4096-ray step, 60 % of those marched), and the MLP's products and their backward are
+most of a CPU step. On beer the view input lowered the training error by 0.07 dB, the trial dropped the MLP and
+the 120-s fit made 578-601 steps instead of about 375: +0.28 dB on its nine held-out frames (median of three, 27.47
+against 27.19), LPIPS 0.36 against 0.40, a visibly sharper walk video and test renders as fast (62k rays/s against
+61k; BENCHMARKS.md, #16 session 26). A capture whose view
+dependence pays (glossy paint, glass) keeps the MLP; ``--set view_dependent=true`` keeps it always."""
+
+
 @dataclass(frozen=True)
 class VoxelGridConfig:
     """Voxel-grid backbone settings (defaults tuned for ~100x100 views on a 2-core CPU)."""
 
-    scene_type_defaults: ClassVar[dict[str, dict[str, Any]]] = {"forward": FORWARD_DEFAULTS}
+    scene_type_defaults: ClassVar[dict[str, dict[str, Any]]] = {"forward": FORWARD_DEFAULTS,
+                                                                 "unbounded": UNBOUNDED_DEFAULTS}
     """Defaults that differ by kind of scene (:mod:`nerfmeta.data.scene_type`), applied before ``--set``."""
 
     coarse_iters: int = 100
@@ -171,7 +185,7 @@ class VoxelGridConfig:
     mlp_depth: int = 3
     """Linear layers in the colour MLP (>= 1)."""
     view_dependent: bool | str = True
-    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"``: decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it. Not the default: the trial tells diffuse from specular scenes, but on a diffuse generated car dropping the MLP cost 0.26 dB at equal iterations (0.44 dB in a 20 s budget), the MLP's capacity helping beyond view dependence (BENCHMARKS.md)."""
+    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"``: decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it. The default for unbounded captures only (``UNBOUNDED_DEFAULTS``, where the MLP is most of a step): the trial tells diffuse from specular scenes, but on a diffuse generated car dropping the MLP cost 0.26 dB at equal iterations (0.44 dB in a 20 s budget), the MLP's capacity helping beyond view dependence (BENCHMARKS.md)."""
     view_probe_step: int = 100
     """``auto``: fine-stage step at which the view dependence is measured (the fine stage has the MLP until then)."""
     view_gain_db: float = 0.45
