@@ -156,8 +156,9 @@ about 490k decoded samples a 4096-ray step, 60 % of those marched), and the MLP'
 most of a CPU step. On beer the view input lowered the training error by 0.07 dB, the trial dropped the MLP and
 the 120-s fit made 578-601 steps instead of about 375: +0.28 dB on its nine held-out frames (median of three, 27.47
 against 27.19), LPIPS 0.36 against 0.40, a visibly sharper walk video and test renders as fast (62k rays/s against
-61k; BENCHMARKS.md, #16 session 26). A capture whose view
-dependence pays (glossy paint, glass) keeps the MLP; ``--set view_dependent=true`` keeps it always."""
+61k; BENCHMARKS.md, #16 session 26). A capture whose view dependence pays (glossy paint, glass) keeps the MLP;
+``--set view_dependent=true`` keeps it always. A transfer fit keeps its saved model's setting, and a resumed run the
+setting it was started with (its ``config.json`` holds the whole model config)."""
 
 
 @dataclass(frozen=True)
