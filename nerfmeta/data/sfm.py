@@ -559,18 +559,14 @@ def map_matches(database: Path, images: Path, photos: int, sparse: Path, config:
     t0 = time.perf_counter()
     progress(phase, 0, photos)
     sparse.mkdir()
+    options = pycolmap.GlobalPipelineOptions() if mapper == "global" else pycolmap.IncrementalPipelineOptions()
+    options.num_threads = config.threads
+    options.random_seed = config.seed if seed is None else seed
+    options.min_model_size = MIN_PHOTOS
     if mapper == "global":
-        options = pycolmap.GlobalPipelineOptions()
-        options.num_threads = config.threads
-        options.random_seed = config.seed if seed is None else seed
-        options.min_model_size = MIN_PHOTOS
         models = pycolmap.global_mapping(database, images, sparse, options=options)
     else:
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = config.threads
-        mapping.random_seed = config.seed if seed is None else seed
-        mapping.min_model_size = MIN_PHOTOS
-        models = pycolmap.incremental_mapping(database, images, sparse, options=mapping, next_image_callback=next_image)
+        models = pycolmap.incremental_mapping(database, images, sparse, options=options, next_image_callback=next_image)
     seconds["mapping"] = seconds.get("mapping", 0.0) + time.perf_counter() - t0
     model = _largest_model(models)
     progress(phase, 0 if model is None else model.num_reg_images(), photos)
