@@ -16,7 +16,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from dataclasses import replace
@@ -38,6 +37,7 @@ from nerfmeta.data.sfm import (  # noqa: E402
     read_verified_matches,
     reconstruct,
 )
+from nerfmeta.runfolder import has_content  # noqa: E402
 
 
 def worst_turn_deg(rotations: np.ndarray, reference: np.ndarray) -> float:
@@ -52,15 +52,18 @@ def worst_turn_deg(rotations: np.ndarray, reference: np.ndarray) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("photos", type=Path)
-    parser.add_argument("--work", type=Path, required=True, help="scratch folder (made anew)")
+    parser.add_argument("--work", type=Path, required=True, help="scratch folder, absent or empty")
     parser.add_argument("--draws", type=int, default=20, help="incremental mappings (seeds 0, 1, ...)")
     parser.add_argument("--global-draws", type=int, default=1, help="global (GLOMAP) mappings after them")
     parser.add_argument("--max-side", type=int, default=SfmConfig().max_side)
     args = parser.parse_args()
     config = SfmConfig(max_side=args.max_side)
+    if has_content(args.work) or (args.work.exists() and not args.work.is_dir()):
+        print(f"error: --work {args.work}: exists and is not an empty folder; give a new one (nothing is deleted)",
+              file=sys.stderr)
+        return 2
     paths = list_photos(args.photos)
     height, width = check_photos(paths, args.photos)
-    shutil.rmtree(args.work, ignore_errors=True)
     photos = args.work / "photos"
     photos.mkdir(parents=True)
     names = [p.name for p in paths]
