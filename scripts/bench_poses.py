@@ -27,7 +27,10 @@ Parts (run under ``flock /work/wt/bench.lock``; each records the load average be
 
 Usage::
 
-    flock /work/wt/bench.lock .venv/bin/python scripts/bench_poses.py synthetic collection beer --work /tmp/bench_poses [--write]
+    flock /work/wt/bench.lock .venv/bin/python scripts/bench_poses.py synthetic collection beer --work NEW_FOLDER
+
+``--work`` (default ``/tmp/bench_poses``) must be absent or empty: the script refuses anything else
+and deletes nothing.
 """
 
 from __future__ import annotations
@@ -51,9 +54,9 @@ import sfm_scenes  # noqa: E402
 
 from nerfmeta.data.llff import llff_to_opengl  # noqa: E402
 from nerfmeta.data.sfm import SfmConfig, compute_poses, rotation_steps_deg  # noqa: E402
+from nerfmeta.runfolder import has_content  # noqa: E402
 
 BEER = ROOT.parent / "shared" / "data" / "real" / "beer"
-HEADING = "## Poses from photos (#16)"
 
 
 def load() -> str:
@@ -88,8 +91,6 @@ def synthetic(work: Path, repeats: int, iters: int) -> dict:
     true = sfm_scenes.ring_poses(40)
     images = sfm_scenes.render(true, 0.8 * 256, 192, 256)
     photos = work / "synthetic" / "photos"
-    if photos.exists():
-        shutil.rmtree(photos.parent)
     sfm_scenes.write_photos(photos, images)
     sfm_scenes.write_blender(work / "synthetic" / "true", images, true, 0.8 * 256)
     runs = []
@@ -114,16 +115,13 @@ def synthetic(work: Path, repeats: int, iters: int) -> dict:
 
 def collection(work: Path) -> dict:
     coll = work / "collection"
-    if not (coll / "collection.json").is_file():
-        subprocess.run([sys.executable, "-m", "nerfmeta", "make-collection", str(coll), "--categories", "chair",
-                        "--scenes-per-category", "1", "--views", "40", "--test-views", "1", "--resolution", "256",
-                        "--val-fraction", "0", "--test-fraction", "0", "--workers", "1"], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "nerfmeta", "make-collection", str(coll), "--categories", "chair",
+                    "--scenes-per-category", "1", "--views", "40", "--test-views", "1", "--resolution", "256",
+                    "--val-fraction", "0", "--test-fraction", "0", "--workers", "1"], check=True, stdout=subprocess.DEVNULL)
     scene = next(p.parent for p in coll.rglob("transforms_train.json"))
     photos = work / "collection_photos"
-    shutil.rmtree(photos, ignore_errors=True)
     shutil.copytree(scene / "train", photos)
     out = work / "collection_sfm"
-    shutil.rmtree(out, ignore_errors=True)
     before = load()
     t0 = time.perf_counter()
     try:
@@ -173,10 +171,9 @@ BEER_MATCHERS = {
 
 def beer(work: Path, max_side: int, matcher: str) -> dict:
     photos = work / "beer_photos"
-    shutil.rmtree(photos, ignore_errors=True)
-    shutil.copytree(BEER / "images", photos)
+    if not photos.is_dir():  # one copy for every matcher of this run
+        shutil.copytree(BEER / "images", photos)
     out = work / f"beer_sfm_{max_side}_{matcher}"
-    shutil.rmtree(out, ignore_errors=True)
     before = load()
     t0 = time.perf_counter()
     result = compute_poses(photos, out, SfmConfig(max_side=max_side, min_registered=0.5, **BEER_MATCHERS[matcher]))
@@ -200,16 +197,21 @@ def beer(work: Path, max_side: int, matcher: str) -> dict:
             "longest_segment_errors": pose_report(est[longest[0]:longest[1]], ref[longest[0]:longest[1]])}
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("parts", nargs="+", choices=("synthetic", "collection", "beer"))
-    parser.add_argument("--work", type=Path, default=Path("/tmp/bench_poses"))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/bench_poses"),
+                        help="scratch folder, absent or empty (nothing in it is deleted)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--iters", type=int, default=400, help="fit length for the SfM-vs-true comparison (0: none)")
     parser.add_argument("--beer-max-side", type=int, default=640)
     parser.add_argument("--beer-matchers", default="sequential,sequential-far,exhaustive",
                         help=f"comma-separated, of: {', '.join(BEER_MATCHERS)}")
     args = parser.parse_args()
+    if has_content(args.work) or (args.work.exists() and not args.work.is_dir()):
+        print(f"error: --work {args.work}: exists and is not an empty folder; give a new one (nothing is deleted)",
+              file=sys.stderr)
+        return 2
     args.work.mkdir(parents=True, exist_ok=True)
     results = {}
     for part in args.parts:
@@ -221,7 +223,8 @@ def main() -> None:
             results[part] = [beer(args.work, args.beer_max_side, m) for m in args.beer_matchers.split(",")]
         print(json.dumps({part: results[part]}, indent=1), flush=True)
     (args.work / "results.json").write_text(json.dumps(results, indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
