@@ -105,3 +105,18 @@ def test_unbounded_scenes_default_to_the_view_dependence_trial_and_set_still_win
     assert run.model_config(scenes["auto"]).view_dependent is True  # the tiny scene is an object on white
     kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
     assert kept.model_config(scenes["unbounded"]).view_dependent is True
+
+
+def test_unbounded_scenes_march_one_voxel_steps_and_set_still_wins(scenes):
+    """An unbounded capture's grid samples every voxel (``stepsize`` 1.0, the scene type's default), an object
+    scene every half voxel; ``--set stepsize=...`` overrides either, and a new grid's alpha at raw density 0
+    is still ``coarse_alpha_init`` per step of the longer step."""
+    run = RunConfig(scene="x", backbone="grid")
+    unbounded = run.model_config(scenes["unbounded"])
+    assert unbounded.stepsize == 1.0
+    assert run.model_config(scenes["auto"]).stepsize == 0.5
+    assert RunConfig(scene="x", backbone="grid", model={"stepsize": 0.5}).model_config(scenes["unbounded"]).stepsize == 0.5
+    model = _model(unbounded, scenes["unbounded"])
+    raw = torch.zeros(4, 1)
+    alpha = -torch.expm1(-torch.nn.functional.softplus(raw + model.shift) * unbounded.stepsize)
+    torch.testing.assert_close(alpha, torch.full_like(alpha, unbounded.coarse_alpha_init))

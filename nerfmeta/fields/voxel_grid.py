@@ -147,7 +147,7 @@ Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1
 and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
-UNBOUNDED_DEFAULTS: dict[str, Any] = {"view_dependent": "auto"}
+UNBOUNDED_DEFAULTS: dict[str, Any] = {"view_dependent": "auto", "stepsize": 1.0}
 """Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
 
 ``view_dependent`` is the per-scene trial (``"auto"``) rather than the MLP always: every ray of such a capture
@@ -158,7 +158,14 @@ the 120-s fit made 578-601 steps instead of about 375: +0.28 dB on its nine held
 against 27.19), LPIPS 0.36 against 0.40, a visibly sharper walk video and test renders as fast (62k rays/s against
 61k; BENCHMARKS.md, #16 session 26). A capture whose view dependence pays (glossy paint, glass) keeps the MLP;
 ``--set view_dependent=true`` keeps it always. A transfer fit keeps its saved model's setting, and a resumed run the
-setting it was started with (its ``config.json`` holds the whole model config)."""
+setting it was started with (its ``config.json`` holds the whole model config).
+
+``stepsize`` 1.0 (one sample a voxel, DirectVoxGO's LLFF step; its unbounded config marches half voxels): on a CPU
+the walk video's sharpness is a matter of steps (a GPU fit of beer went from soft at 360 steps to sharp at
+1000-2000), and half the samples a ray make each step about 1.6x as fast. On beer's 120-s fit: 924-951 steps instead
+of 563-574, 27.56 dB on the nine held-out frames instead of 27.43 (medians of three), LPIPS 0.32 against 0.36, a
+visibly sharper walk, and test renders at 106k rays/s instead of 62k (103 samples a ray instead of 203;
+BENCHMARKS.md, #16 session 27). Measured on beer only (the one unbounded capture here), on this CPU only."""
 
 
 @dataclass(frozen=True)
@@ -198,7 +205,7 @@ class VoxelGridConfig:
     dir_freqs: int = 4
     """Frequencies of the view-direction encoding."""
     stepsize: float = 0.5
-    """Distance between samples along a ray, in voxels of the current grid."""
+    """Distance between samples along a ray, in voxels of the current grid (1.0 on forward-facing and unbounded scenes, see their defaults)."""
     bbox_thres: float = 0.1
     """Coarse alpha above which a voxel counts as occupied when tightening the fine box (DirectVoxGO uses 1e-3 after a 5000-step coarse stage; a short one leaves faint floaters that such a low value would count)."""
     mask_cache_thres: float = 1e-3
