@@ -116,7 +116,6 @@ def test_unbounded_scenes_march_one_voxel_steps_and_set_still_wins(scenes):
     assert unbounded.stepsize == 1.0
     assert run.model_config(scenes["auto"]).stepsize == 0.5
     assert RunConfig(scene="x", backbone="grid", model={"stepsize": 0.5}).model_config(scenes["unbounded"]).stepsize == 0.5
-    model = _model(unbounded, scenes["unbounded"])
-    raw = torch.zeros(4, 1)
-    alpha = -torch.expm1(-torch.nn.functional.softplus(raw + model.shift) * unbounded.stepsize)
+    model = _model(unbounded, scenes["unbounded"])  # a new grid: raw density 0 everywhere
+    alpha = model.alpha_per_step(model.bounds.mean(0, keepdim=True).expand(4, 3))
     torch.testing.assert_close(alpha, torch.full_like(alpha, unbounded.coarse_alpha_init))
