@@ -37,7 +37,7 @@ from nerfmeta.data.sfm import (  # noqa: E402
     read_verified_matches,
     reconstruct,
 )
-from nerfmeta.runfolder import has_content  # noqa: E402
+from benchlib.workdir import work_folder_error  # noqa: E402
 
 
 def worst_turn_deg(rotations: np.ndarray, reference: np.ndarray) -> float:
@@ -58,9 +58,9 @@ def main() -> int:
     parser.add_argument("--max-side", type=int, default=SfmConfig().max_side)
     args = parser.parse_args()
     config = SfmConfig(max_side=args.max_side)
-    if has_content(args.work) or (args.work.exists() and not args.work.is_dir()):
-        print(f"error: --work {args.work}: exists and is not an empty folder; give a new one (nothing is deleted)",
-              file=sys.stderr)
+    refusal = work_folder_error(args.work)
+    if refusal:
+        print(refusal, file=sys.stderr)
         return 2
     paths = list_photos(args.photos)
     height, width = check_photos(paths, args.photos)

@@ -54,7 +54,7 @@ import sfm_scenes  # noqa: E402
 
 from nerfmeta.data.llff import llff_to_opengl  # noqa: E402
 from nerfmeta.data.sfm import SfmConfig, compute_poses, rotation_steps_deg  # noqa: E402
-from nerfmeta.runfolder import has_content  # noqa: E402
+from benchlib.workdir import work_folder_error  # noqa: E402
 
 BEER = ROOT.parent / "shared" / "data" / "real" / "beer"
 
@@ -208,9 +208,9 @@ def main() -> int:
     parser.add_argument("--beer-matchers", default="sequential,sequential-far,exhaustive",
                         help=f"comma-separated, of: {', '.join(BEER_MATCHERS)}")
     args = parser.parse_args()
-    if has_content(args.work) or (args.work.exists() and not args.work.is_dir()):
-        print(f"error: --work {args.work}: exists and is not an empty folder; give a new one (nothing is deleted)",
-              file=sys.stderr)
+    refusal = work_folder_error(args.work)
+    if refusal:
+        print(refusal, file=sys.stderr)
         return 2
     args.work.mkdir(parents=True, exist_ok=True)
     results = {}
