@@ -250,13 +250,20 @@ def test_unregistered_photos_are_named(arc, tmp_path: Path, capsys: pytest.Captu
     folder.mkdir()
     for p in arc[0].iterdir():
         (folder / p.name).write_bytes(p.read_bytes())
-    Image.fromarray(np.random.default_rng(1).integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / "zz_noise.png")
+    rng = np.random.default_rng(1)
+    for k in range(3):
+        Image.fromarray(rng.integers(0, 256, (HEIGHT, WIDTH, 3), dtype=np.uint8)).save(folder / f"zz_noise{k}.png")
+    # 10 of 13 (0.77) is under the default 0.8: an error naming them, and the command that keeps the rest
     line = _fails(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1"], capsys)
-    assert "1 of 11 photos did not register: zz_noise.png" in line and "--min-registered 0.9" in line
+    assert "3 of 13 photos did not register (at least 0.8 must): zz_noise0.png, zz_noise1.png, zz_noise2.png" in line
+    assert f"nerfmeta poses {folder} --out SCENE --min-registered 0.76" in line
     assert not (tmp_path / "s").exists()
-    assert main(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1", "--min-registered", "0.9"]) == 0
-    assert "zz_noise.png" in capsys.readouterr().out
-    assert json.loads((tmp_path / "s" / "sfm.json").read_text())["unregistered"] == ["zz_noise.png"]
+    (folder / "zz_noise1.png").unlink()
+    (folder / "zz_noise2.png").unlink()
+    # 10 of 11 by default: the scene is made without the photo that did not register, which is named
+    assert main(["poses", str(folder), "--out", str(tmp_path / "s"), "--threads", "1"]) == 0
+    assert "left out 1 photo(s) that did not register: zz_noise0.png" in capsys.readouterr().out
+    assert json.loads((tmp_path / "s" / "sfm.json").read_text())["unregistered"] == ["zz_noise0.png"]
     assert load_scene(tmp_path / "s").images.shape[0] == VIEWS
 
 
@@ -298,6 +305,26 @@ def test_fit_on_photos_computes_the_poses_once(arc, tmp_path: Path, monkeypatch:
     with pytest.raises(AssertionError, match="ran again"):
         cached_poses(folder)
     (folder / "view_000.renamed.png").rename(folder / "view_000.png")
+
+
+def test_fit_on_photos_names_the_ones_left_out_each_time(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    import nerfmeta.data.sfm as sfm
+    from nerfmeta.commands.poses import poses_for_photos
+
+    monkeypatch.setenv("NERFMETA_CACHE", str(tmp_path / "cache"))
+    folder = tmp_path / "photos"
+    sfm_scenes.write_photos(folder, np.zeros((3, 8, 12, 3), np.uint8))
+
+    def fake_sfm(photos, out, config, **kwargs):  # what compute_poses leaves when a photo did not register
+        Path(out).mkdir(parents=True)
+        (Path(out) / sfm.TRANSFORMS).write_text("{}")
+        (Path(out) / sfm.REPORT).write_text(json.dumps({"photos": 3, "unregistered": ["view_001.png"]}))
+
+    monkeypatch.setattr(sfm, "compute_poses", fake_sfm)
+    for _ in range(2):  # computed, then from the cache
+        poses_for_photos(str(folder))
+        assert "left out 1 photo(s) that did not register: view_001.png" in capsys.readouterr().err
 
 
 def test_photo_folder_is_not_a_scene_without_pycolmap_hint(arc, tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ this layer draws one progress bar per phase.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import textwrap
 
@@ -80,8 +81,9 @@ def _need_pycolmap() -> None:
 
 def poses_for_photos(scene: str, *, verbose: bool = False) -> str:
     """``scene`` unchanged, or for a folder of photos without poses the cached SfM scene of them
-    (computed with the default :class:`SfmConfig` when not cached yet; bars on stderr)."""
-    from nerfmeta.data.sfm import cache_root, cached_poses, is_photo_folder
+    (computed with the default :class:`SfmConfig` when not cached yet; bars on stderr). The photos
+    that did not register are named on stderr each time, from the cache too."""
+    from nerfmeta.data.sfm import REPORT, cache_root, cached_poses, is_photo_folder
 
     if not is_photo_folder(scene):
         return scene
@@ -94,6 +96,10 @@ def poses_for_photos(scene: str, *, verbose: bool = False) -> str:
     finally:
         bars.close()
     print(f"camera poses {'from the cache' if cached else 'computed'}: {folder}", file=sys.stderr, flush=True)
+    left_out = json.loads((folder / REPORT).read_text()).get("unregistered", [])
+    if left_out:
+        print(f"left out {len(left_out)} photo(s) that did not register: {', '.join(left_out)}", file=sys.stderr,
+              flush=True)
     return str(folder)
 
 

@@ -107,8 +107,11 @@ class SfmConfig:
     """COLMAP camera model shared by all photos; a model with distortion is undistorted to PINHOLE images."""
     max_features: int = bounded(8192, low=64)
     """Most SIFT features per image."""
-    min_registered: float = bounded(1.0, low=0, high=1, low_open=True)
-    """Fraction of the photos that must register (a lower fraction is an error naming the ones that did not)."""
+    min_registered: float = bounded(0.8, low=0, high=1, low_open=True)
+    """Fraction of the photos that must register: a lower fraction is an error naming the ones that did not; at or
+    above it those are left out of the scene, named in a warning and in ``sfm.json``. A capture often has a few
+    photos SfM cannot place (blurred, or of a featureless side), and the rest still make a scene; before, one such
+    photo stopped ``nerfmeta fit PHOTOS``, whose error pointed to an option only ``nerfmeta poses`` has."""
     threads: int = bounded(-1, low=-1)
     """Threads COLMAP uses (-1: all cores)."""
     seed: int = bounded(0, low=0)
@@ -672,9 +675,10 @@ def _unregistered_error(folder: Path, missing: Sequence[str], total: int, config
     if len(missing) == total:
         return SceneError(f"{folder}: structure from motion found no two photos that overlap enough to start a model "
                           f"({total} photos); take overlapping photos of one textured scene from nearby viewpoints")
-    return SceneError(f"{folder}: {len(missing)} of {total} photos did not register: {shown}; they share too few "
-                      f"features with the others (retake or remove them, or allow it with --min-registered "
-                      f"{max(0.01, math.floor((total - len(missing)) / total * 100) / 100):g})")
+    share = max(0.01, math.floor((total - len(missing)) / total * 100) / 100)
+    return SceneError(f"{folder}: {len(missing)} of {total} photos did not register (at least {config.min_registered:g} "
+                      f"must): {shown}; they share too few features with the others (retake or remove them, or keep "
+                      f"the rest with: nerfmeta poses {folder} --out SCENE --min-registered {share:g})")
 
 
 def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: SfmConfig = SfmConfig(), *,
