@@ -33,7 +33,7 @@ FREEZE_HELP = (
 )
 
 RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "scene_type",
-               "ndc_near_factor", "device")
+               "ndc_near_factor", "drop_views", "device")
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
 """Spellings of :class:`FitConfig` fields that differ from the field name (kept from earlier releases)."""
@@ -59,8 +59,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     options.add_config_options(
         p, RunConfig, only=RUN_OPTIONS,
         choices={"backbone": sorted(BACKBONES), "scene_type": ("auto", *SCENE_TYPES)},
-        parsers={"background": parse_background},
-        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "background": "COLOUR", "device": "DEV"},
+        parsers={"background": parse_background, "drop_views": parse_names},
+        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "background": "COLOUR", "device": "DEV",
+                  "drop_views": "NAMES"},
         notes={
             "init": "auto: with a zoo holding priors of the fit's backbone, classify the scene with the zoo's classifier and "
                     "start from its category model, or from the meta-learned initialisation for an unknown category, where "
@@ -69,6 +70,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     "init keeps its backbone config",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
+            "drop_views": "comma-separated, e.g. r_4.png,r_15.png; a fit names its suspect views with this option",
             "device": "cpu, cuda or cuda:N",
         },
         defaults={"backbone": "the --init model's backbone, else grid (also with --init auto: the shipped zoo's "
@@ -98,6 +100,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in RUN from its checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing RUN folder")
     p.set_defaults(func=run)
+
+
+def parse_names(text: str) -> tuple[str, ...]:
+    """``a.png,b.png`` -> ``("a.png", "b.png")`` (blanks around names and empty names dropped)."""
+    return tuple(name.strip() for name in text.split(",") if name.strip())
 
 
 def backbone_fields_help() -> str:

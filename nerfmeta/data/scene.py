@@ -15,12 +15,14 @@ Conventions used everywhere in nerfmeta:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import torch
 
 from nerfmeta.data.scene_type import SceneType
+from nerfmeta.errors import SceneError
 from nerfmeta.render.ndc import NDCSpace
 
 SPLITS = ("train", "val", "test")
@@ -137,6 +139,33 @@ class Scene:
     def split_indices(self, split: str) -> torch.Tensor:
         """View indices of ``split`` as a LongTensor (empty if the split is absent)."""
         return torch.tensor(self.splits.get(split, ()), dtype=torch.long)
+
+    def without_views(self, names: Sequence[str]) -> "Scene":
+        """The scene without the views ``names`` (an image's name as :attr:`image_names` holds it, or its file
+        name), from every split; the other views keep their splits.
+
+        Raises:
+            SceneError: a name that is not a view of the scene, or no training view left.
+        """
+        if not names:
+            return self
+        by_name: dict[str, int] = {}
+        for i, name in enumerate(self.image_names):
+            by_name[name] = by_name[PurePath(name).name] = i
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise SceneError(f"{self.source}: --drop-views names {', '.join(unknown)}, not a view of this scene "
+                             f"(views are named as in {', '.join(self.image_names[:3])}...)")
+        drop = {by_name[n] for n in names}
+        keep = [i for i in range(self.n_views) if i not in drop]
+        new_index = {old: new for new, old in enumerate(keep)}
+        splits = {k: tuple(new_index[i] for i in v if i in new_index) for k, v in self.splits.items()}
+        if not splits.get("train"):
+            raise SceneError(f"{self.source}: --drop-views leaves no training view")
+        idx = torch.tensor(keep, dtype=torch.long)
+        return replace(self, images=self.images[idx], poses=self.poses[idx], intrinsics=self.intrinsics[idx],
+                       alphas=None if self.alphas is None else self.alphas[idx], splits=splits,
+                       image_names=tuple(self.image_names[i] for i in keep))
 
     def subset(self, split: str) -> "Scene":
         """The views of one split as a scene of their own (splits renumbered)."""

@@ -31,6 +31,7 @@ from nerfmeta.fields.base import Decision, RadianceModel, total_loss
 from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
 from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
+from nerfmeta.fit.views import ViewErrors
 from nerfmeta.metrics import LpipsUnavailable, load_lpips, lpips_skip_reason, mse_to_psnr, ssim_skip_reason
 
 log = logging.getLogger(__name__)
@@ -145,6 +146,9 @@ class FitResult:
     state: FitState
     final: EvalResult | None
     history: list[StepRecord] = field(default_factory=list)
+    view_psnr: torch.Tensor | None = None
+    """(V,) each training view's PSNR over the fit's last steps (:class:`~nerfmeta.fit.views.ViewErrors`; NaN:
+    too few rays to tell), in the order of the scene's ``train`` split."""
 
 
 def build_optimizer(model: RadianceModel, config: FitConfig) -> torch.optim.Adam:
@@ -231,6 +235,7 @@ def fit(
         optimizer.load_state_dict(state.optimizer_state)
     history: list[StepRecord] = []
     is_cuda = device.type == "cuda"
+    view_errors = ViewErrors.empty(sampler.n_views)
 
     final: EvalResult | None = None
 
@@ -340,7 +345,7 @@ def fit(
             scale = lr_scale(config, state.step, state.time_s) * guard.lr_scale
             for g in optimizer.param_groups:
                 g["lr"] = g["base_lr"] * scale
-            batch = sampler.sample(config.batch_rays, gen)
+            batch, views = sampler.draw(config.batch_rays, gen)
             out = model(batch, background=background, train=True, generator=gen, target=batch.target)
             mse, loss = out.losses["mse"], total_loss(out.losses)
             optimizer.zero_grad(set_to_none=True)
@@ -351,6 +356,7 @@ def fit(
             rollbacks.append(guard.rollback(state.step + 1, bad, model, optimizer, _DIVERGED_HINT).message())
             state.lr_guard_scale, state.guard_events = guard.lr_scale, list(guard.events)
         guard.accept(loss_value, state.step, model, optimizer)  # before the update: the snapshot holds checked values
+        view_errors.add(views, out.rgb, batch.target)
         optimizer.step()
         if is_cuda:
             torch.cuda.synchronize(device)
@@ -381,4 +387,4 @@ def fit(
     capture()
     if should_checkpoint:
         should_checkpoint(state)
-    return FitResult(state, final, history)
+    return FitResult(state, final, history, view_errors.psnr())

@@ -47,6 +47,7 @@ from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_mo
 from nerfmeta.geometry.runs import fit_geometry
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
 from nerfmeta.fit.sampler import fit_space
+from nerfmeta.fit.views import suspect_views
 from nerfmeta.render.ndc import BD_FACTOR, NEAR_FACTOR
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
@@ -84,6 +85,9 @@ class RunConfig:
     ndc_near_factor: float = bounded(NEAR_FACTOR, low=0.0, high=1.0, low_open=True)
     """Forward-facing scenes: the NDC near plane's distance as a fraction of the scene's near bound (NeRF: 0.75);
     see :mod:`nerfmeta.render.ndc`. Other scene types ignore it."""
+    drop_views: tuple[str, ...] = ()
+    """Views left out of the fit and its evaluation, by image name (or file name): e.g. the views a fit named as
+    suspect, whose poses are likely wrong (``summary.json``'s ``suspect_views``, :mod:`nerfmeta.fit.views`)."""
     device: str = "cpu"
     """Torch device."""
     init: str = "scratch"
@@ -114,6 +118,7 @@ class RunConfig:
         data["fit"] = FitConfig.from_json(data.get("fit", {}))
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         data["snapshot_iters"] = tuple(data.get("snapshot_iters", ()))
+        data["drop_views"] = tuple(data.get("drop_views", ()))
         # A run saved before scene types existed was fitted as a bounded object: resuming it must not
         # switch it to NDC or a contracted space (its checkpoint holds the bounded model).
         data.setdefault("scene_type", "object")
@@ -126,7 +131,7 @@ def run_scene(config: RunConfig):
     """The scene of ``config`` as its fit sees it: loaded with the run's options, then put in the fit's
     space (a forward-facing scene in NDC, :func:`nerfmeta.fit.sampler.fit_space`)."""
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type)
+                       scene_type=config.scene_type).without_views(config.drop_views)
     jumps = walk_jumps(scene.poses[:, :3, :3].double().cpu().numpy())
     if jumps:
         log.warning("%s: %s", config.scene, folded_walk_note(jumps))
@@ -434,6 +439,9 @@ class FitSummary:
     """Decisions the loop took (e.g. view dependence)."""
     guard_events: list[dict[str, Any]]
     """The divergence guard's rollbacks."""
+    suspect_views: list[dict[str, Any]]
+    """Training views the fit could not reconcile with the others (a wrong pose, most often): each one's name,
+    PSNR over the last steps and dB below the median training view (:mod:`nerfmeta.fit.views`); worst first."""
     init_load_s: float | None = None
     """Wall seconds to build the starting model (read and hash-check a saved init, or draw scratch weights);
     outside ``time_s``; None for a resumed fit (its start was loaded in an earlier process)."""
@@ -496,7 +504,26 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
         n_parameters=sum(p.numel() for p in model.parameters()),
         decisions=result.state.decisions,
         guard_events=[e.as_json() for e in result.state.guard_events],
+        suspect_views=_suspect_views(scene, result),
     )
+
+
+def _suspect_views(scene, result: FitResult) -> list[dict[str, Any]]:
+    """``summary.json``'s suspect views (:func:`~nerfmeta.fit.views.suspect_views`), warned about by name."""
+    if result.view_psnr is None:
+        return []
+    train = scene.splits["train"]
+    rows = [{"view": scene.image_names[train[i]] if scene.image_names else str(train[i]),
+             "psnr": round(float(result.view_psnr[i]), 2), "below_median_db": round(gap, 2)}
+            for i, gap in suspect_views(result.view_psnr)]
+    if rows:
+        shown = ", ".join(f"{r['view']} ({r['below_median_db']:.1f} dB)" for r in rows[:8])
+        more = f" and {len(rows) - 8} more" if len(rows) > 8 else ""
+        log.warning("%d training view(s) render far worse than the median training view: %s%s; their camera poses are "
+                    "likely wrong (structure from motion can place a photo on the wrong side of a look-alike scene). "
+                    "Fit again without them: --drop-views %s", len(rows), shown, more,
+                    ",".join(Path(r["view"]).name for r in rows))
+    return rows
 
 
 def _lpips_note(config: RunConfig, final, decisions: dict[str, Any]) -> str:

@@ -81,6 +81,10 @@ class RaySampler:
 
     def sample(self, n_rays: int, generator: torch.Generator) -> RayBatch:
         """A batch of ``n_rays`` random training rays with their target colours."""
+        return self.draw(n_rays, generator)[0]
+
+    def draw(self, n_rays: int, generator: torch.Generator) -> tuple[RayBatch, torch.Tensor]:
+        """:meth:`sample`'s batch and (n_rays,) the position of each ray's view in the split."""
         flat = torch.randint(self.n_pixels, (n_rays,), generator=generator).to(self.images.device)
         hw = self.height * self.width
         view, pix = flat // hw, flat % hw
@@ -90,7 +94,7 @@ class RaySampler:
         origins, dirs = camera_rays(self.poses[view], self.intrinsics[view], xy)
         target = self.images[view, row, col]
         alpha = None if self.alphas is None else self.alphas[view, row, col]
-        return RayBatch(*rays_in_space(self.ndc, origins, dirs, self.near, self.far), target, alpha)
+        return RayBatch(*rays_in_space(self.ndc, origins, dirs, self.near, self.far), target, alpha), view
 
 
 def view_rays(scene: Scene, view: int, device: torch.device | str) -> RayBatch:
