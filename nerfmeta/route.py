@@ -358,7 +358,7 @@ def scene_facts(config: RunConfig) -> SceneFacts:
     from nerfmeta.data import load_scene
 
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type)
+                       scene_type=config.scene_type, max_side=config.max_side)
     box = scene.bounds.detach().cpu().tolist()
     return SceneFacts((tuple(box[0]), tuple(box[1])), (scene.height, scene.width),
                       None if scene.background is None else tuple(float(v) for v in scene.background))

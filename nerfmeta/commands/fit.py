@@ -32,7 +32,7 @@ FREEZE_HELP = (
     "so K = 1 freezes the density grid (geometry), K = 2 also the feature grid (only the colour MLP adapts)"
 )
 
-RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "normalize", "background", "scene_type",
+RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "max_side", "normalize", "background", "scene_type",
                "ndc_near_factor", "drop_views", "device")
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
@@ -60,7 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         p, RunConfig, only=RUN_OPTIONS,
         choices={"backbone": sorted(BACKBONES), "scene_type": ("auto", *SCENE_TYPES)},
         parsers={"background": parse_background, "drop_views": parse_names},
-        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "background": "COLOUR", "device": "DEV",
+        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "max_side": "PX", "background": "COLOUR",
+                  "device": "DEV",
                   "drop_views": "NAMES"},
         notes={
             "init": "auto: with a zoo holding priors of the fit's backbone, classify the scene with the zoo's classifier and "
@@ -152,6 +153,8 @@ def model_overrides(args: argparse.Namespace, backbone: str, preset: Preset | No
 def run_config_from(args: argparse.Namespace, **fixed: Any) -> RunConfig:
     """The :class:`RunConfig` of the options given and ``fixed``, its backbone config checked (before anything is written)."""
     values = {**options.given_values(args, RunConfig), "scene": str(Path(args.scene)), **fixed}
+    if "downscale" in values and "max_side" not in values:  # a factor asked for is the factor used
+        values["max_side"] = 0
     config = options.build_config(RunConfig, values)
     config.model_config()
     return config

@@ -54,6 +54,9 @@ class LoadOptions:
     scene_type: str = "auto"
     """``auto`` (detected from the cameras and image borders) or ``object``, ``forward``,
     ``unbounded`` (rule in :mod:`nerfmeta.data.scene_type`)."""
+    max_side: int = 0
+    """0: no limit. Else images whose longest side is still over this after ``downscale`` are reduced
+    further, by the smallest power of two that brings them within it (:func:`side_factor`)."""
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.downscale) or self.downscale < 1:
@@ -64,6 +67,8 @@ class LoadOptions:
         object.__setattr__(self, "background", tuple(float(v) for v in bg))
         if int(self.max_pixels) < 1:
             raise ConfigError(f"max_pixels must be >= 1, got {self.max_pixels}")
+        if int(self.max_side) < 0:
+            raise ConfigError(f"max_side must be >= 0 (0: no limit), got {self.max_side}")
         if self.scene_type != "auto" and self.scene_type not in SCENE_TYPES:
             raise ConfigError(f"scene type must be auto, {', '.join(SCENE_TYPES)}; got {self.scene_type!r}")
 
@@ -223,6 +228,7 @@ class ViewStack:
         alphas: (n, h, w) float32, or None when no image had an alpha channel.
         height, width: size after downscaling.
         source_height, source_width: size of the files.
+        factor: the downscale applied to the files (the one asked for, or more under ``max_side``).
     """
 
     images: torch.Tensor
@@ -231,6 +237,7 @@ class ViewStack:
     width: int
     source_height: int
     source_width: int
+    factor: float = 1.0
 
 
 READ_CHUNK = 8
@@ -262,6 +269,18 @@ def memory_limit_bytes() -> int:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):  # not a POSIX system: no limit known
         return 1 << 62
+
+
+def side_factor(height: int, width: int, factor: float, max_side: int) -> float:
+    """``factor`` times the smallest power of two (1, 2, 4, ...) that brings images of ``height`` x ``width`` reduced
+    by it to a longest side of at most ``max_side`` (0: ``factor`` unchanged). Powers of two, as nerfstudio's
+    automatic downscale, so that LLFF's ``images_2``/``images_4``/``images_8`` folders can serve them."""
+    if max_side <= 0:
+        return factor
+    scale = 1
+    while max(height, width) / (factor * scale) > max_side:
+        scale *= 2
+    return factor * scale
 
 
 def check_stack_memory(n: int, height: int, width: int, factor: float, *, where: str) -> None:
@@ -299,7 +318,7 @@ def stack_views(
         if alphas is None:
             alphas = torch.ones(n, out_h, out_w, dtype=torch.float32)
         alphas[start:end] = small[..., 3]
-    return ViewStack(images, alphas, out_h, out_w, height, width)
+    return ViewStack(images, alphas, out_h, out_w, height, width, factor)
 
 
 def read_views(paths: Sequence[Path], options: LoadOptions, *, downscale: float | None = None) -> ViewStack:
@@ -314,8 +333,8 @@ def read_views(paths: Sequence[Path], options: LoadOptions, *, downscale: float 
         downscale: factor to apply instead of ``options.downscale`` (1 when the files are already
             reduced, as LLFF's ``images_N``).
     """
-    factor = options.downscale if downscale is None else downscale
     height, width = check_image_sizes(paths, options.max_pixels)
+    factor = side_factor(height, width, options.downscale if downscale is None else downscale, options.max_side)
     check_stack_memory(len(paths), height, width, factor, where=str(paths[0].parent))
 
     def batches() -> Iterator[tuple[torch.Tensor, int]]:
@@ -343,7 +362,8 @@ def image_arrays_to_views(array: np.ndarray, options: LoadOptions, *, name: str)
             names = [f"{name}: images[{start + k}]" for k in range(len(chunk))]
             yield to_float_images(chunk, names=names), start
 
-    return stack_views(batches(), len(array), height, width, options, options.downscale)
+    return stack_views(batches(), len(array), height, width, options,
+                       side_factor(height, width, options.downscale, options.max_side))
 
 
 # --- scene -------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from nerfmeta.data.common import (
     every_nth_splits,
     near_far,
     read_views,
+    side_factor,
 )
 from nerfmeta.data.images import list_images
 from nerfmeta.data.scene import Scene
@@ -115,7 +116,8 @@ def load(path: Path, options: LoadOptions) -> Scene:
         raise SceneError(f"{file}: per-view bounds must satisfy 0 < near < far")
     near, far = near_far(0.9 * depths[:, 0].min(), 1.1 * depths[:, 1].max(), where=str(file))
 
-    folder, remaining = _image_folder(path, options.downscale, len(poses))
+    factor = side_factor(int(hwf[:, 0].max()), int(hwf[:, 1].max()), options.downscale, options.max_side)
+    folder, remaining = _image_folder(path, factor, len(poses))
     image_paths = list_images(folder)
     if len(image_paths) != len(poses):
         raise SceneError(f"{file}: has {len(poses)} poses but {folder} holds {len(image_paths)} images")
@@ -142,7 +144,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         source=path,
         format=NAME,
         options=options,
-        downscale=options.downscale,
+        downscale=factor * views.factor / remaining,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
         where=str(file),
         near_far_source="from file (0.9 x nearest and 1.1 x farthest depth bound)",

@@ -162,7 +162,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         source=path,
         format=NAME,
         options=options,
-        downscale=options.downscale,
+        downscale=views.factor,
         aabb=aabb,
         category=category,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],

@@ -99,7 +99,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         source=path,
         format=NAME,
         options=options,
-        downscale=options.downscale,
+        downscale=views.factor,
         image_names=[f"{path.name}[{k}]" for k in range(len(checked))],
         where=str(path),
         near_far_source=near_far_source,

@@ -82,6 +82,7 @@ def load_scene(
     max_pixels: int = DEFAULT_MAX_PIXELS,
     normalize: bool = True,
     scene_type: str = "auto",
+    max_side: int = 0,
 ) -> Scene:
     """Read a scene in any supported format.
 
@@ -93,13 +94,15 @@ def load_scene(
         normalize: move a scene of extreme scale or far from the origin into range (the identity
             for scenes already in range; see :mod:`nerfmeta.data.normalize`).
         scene_type: ``auto`` or the kind of capture (see :mod:`nerfmeta.data.scene_type`).
+        max_side: reduce images further while their longest side exceeds it (0: no limit; see
+            :attr:`LoadOptions.max_side`).
 
     Raises:
         ConfigError: a bad option. SceneError: a bad or unsupported scene (one line, naming the
             file and what is wrong).
     """
     options = LoadOptions(downscale=downscale, background=background, max_pixels=max_pixels, normalize=normalize,
-                          scene_type=scene_type)
+                          scene_type=scene_type, max_side=max_side)
     return load_scene_with(path, options)
 
 

@@ -59,6 +59,11 @@ log = logging.getLogger(__name__)
 
 RENDERED_VIEWS = 4
 
+MAX_SIDE = 1600
+"""Default longest image side of a fit (:attr:`RunConfig.max_side`): nerfstudio's automatic downscale target, and
+``nerfmeta poses``' default for photos. A grid of at most 160 voxels a side cannot use more, and a full-size
+evaluation of a 4032 x 3024 capture would render 12 M rays a view."""
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -74,6 +79,12 @@ class RunConfig:
     """Optimisation settings."""
     downscale: float = bounded(1.0, low=1)
     """Image downscale factor applied when loading."""
+    max_side: int = bounded(MAX_SIDE, low=0)
+    """Longest image side a fit reads: larger images are reduced further by the smallest power of two that brings
+    them within it (nerfstudio's automatic downscale; LLFF's ``images_N`` folders serve it), so a 4032 x 3024
+    capture is fitted and evaluated at 1008 x 756; 0: no limit. ``nerfmeta fit`` turns it off when ``--downscale``
+    is given without it; a fit that reduces its images so says in a warning, and ``summary.json["resolution"]``
+    records the size fitted."""
     normalize: bool = True
     """Move a scene of extreme scale or far from the origin into range when loading (identity for
     scenes already in range; see :mod:`nerfmeta.data.normalize`); the summary records what was applied."""
@@ -119,6 +130,8 @@ class RunConfig:
         data["background"] = tuple(data.get("background", (1.0, 1.0, 1.0)))
         data["snapshot_iters"] = tuple(data.get("snapshot_iters", ()))
         data["drop_views"] = tuple(data.get("drop_views", ()))
+        # Runs saved before the limit existed read their images at ``downscale`` alone: keep their resolution.
+        data.setdefault("max_side", 0)
         # A run saved before scene types existed was fitted as a bounded object: resuming it must not
         # switch it to NDC or a contracted space (its checkpoint holds the bounded model).
         data.setdefault("scene_type", "object")
@@ -131,7 +144,11 @@ def run_scene(config: RunConfig):
     """The scene of ``config`` as its fit sees it: loaded with the run's options, then put in the fit's
     space (a forward-facing scene in NDC, :func:`nerfmeta.fit.sampler.fit_space`)."""
     scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type).without_views(config.drop_views)
+                       scene_type=config.scene_type, max_side=config.max_side).without_views(config.drop_views)
+    if scene.downscale > config.downscale:
+        log.warning("%s: read at 1/%g, %d x %d, to keep the longest side within --max-side %d (--max-side 0 or "
+                    "--downscale F for another size)", config.scene, scene.downscale, scene.width, scene.height,
+                    config.max_side)
     jumps = walk_jumps(scene.poses[:, :3, :3].double().cpu().numpy())
     if jumps:
         log.warning("%s: %s", config.scene, folded_walk_note(jumps))
