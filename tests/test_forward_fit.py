@@ -104,18 +104,11 @@ def test_a_forward_grid_has_a_quarter_voxel_per_pixel_and_an_object_grid_keeps_i
 
 def test_a_classic_llff_folder_fits_end_to_end_in_ndc(tmp_path):
     """images/ at full size, images_4/ reduced, (h, w, f) of the full size: `fit --downscale 4` reads images_4/."""
+    from llff_scenes import CONFIG as config, write_classic_llff
     from nerfmeta.cli import main
-    from nerfmeta.collection.forward import render_forward_scene, write_llff_scene
-    from nerfmeta.data.write import encode_png
-    from nerfmeta.io import write_bytes_atomic
 
-    config = ForwardSceneConfig(width=48, height=36, grid=(3, 3), supersample=1)
-    images, poses, bounds = render_forward_scene(config)
     scene_dir = tmp_path / "fern_like"
-    write_llff_scene(scene_dir, images, poses, bounds, config.focal)
-    small = images.reshape(9, 9, 4, 12, 4, 3).mean(axis=(2, 4)).round().astype("uint8")
-    for k, image in enumerate(small):
-        write_bytes_atomic(scene_dir / "images_4" / f"view_{k:03d}.png", encode_png(image))
+    write_classic_llff(scene_dir)
     scene = load_scene(scene_dir, downscale=4)
     assert (scene.height, scene.width) == (9, 12) and scene.scene_type.kind == "forward"
     assert torch.allclose(scene.intrinsics[0], torch.tensor([config.focal / 4, config.focal / 4, 6.0, 4.5]))

@@ -35,20 +35,13 @@ def test_a_limited_load_equals_the_downscaled_one(tiny_scene):
 
 
 def test_an_llff_capture_over_the_limit_is_read_from_its_reduced_folder(tmp_path):
-    from nerfmeta.collection.forward import ForwardSceneConfig, render_forward_scene, write_llff_scene
-    from nerfmeta.data.write import encode_png
-    from nerfmeta.io import write_bytes_atomic
+    from llff_scenes import CONFIG as config, write_classic_llff
 
-    config = ForwardSceneConfig(width=48, height=36, grid=(3, 3), supersample=1)
-    images, poses, bounds = render_forward_scene(config)
     scene_dir = tmp_path / "fern_like"
-    write_llff_scene(scene_dir, images, poses, bounds, config.focal)
-    small = images.reshape(9, 9, 4, 12, 4, 3).mean(axis=(2, 4)).round().astype("uint8")
-    for k, image in enumerate(small):
-        write_bytes_atomic(scene_dir / "images_4" / f"view_{k:03d}.png", encode_png(image + 1))  # tell the folders apart
+    small = write_classic_llff(scene_dir, reduced_offset=1)  # images_4/ told apart from images/ reduced
     scene = load_scene(scene_dir, max_side=12)  # 48 wide: 1/4, from images_4/
     assert (scene.height, scene.width, scene.downscale) == (9, 12, 4.0)
-    assert torch.allclose(scene.images[0], torch.from_numpy(small[0] + 1).float() / 255)
+    assert torch.allclose(scene.images[0], torch.from_numpy(small[0]).float() / 255)
     assert torch.allclose(scene.intrinsics[0], torch.tensor([config.focal / 4, config.focal / 4, 6.0, 4.5]))
     (scene_dir / "images_4").rename(tmp_path / "gone")  # without it: images/ read and reduced, the same factor
     assert load_scene(scene_dir, max_side=12).downscale == 4.0
