@@ -45,6 +45,11 @@ def test_an_llff_capture_over_the_limit_is_read_from_its_reduced_folder(tmp_path
     assert torch.allclose(scene.intrinsics[0], torch.tensor([config.focal / 4, config.focal / 4, 6.0, 4.5]))
     (scene_dir / "images_4").rename(tmp_path / "gone")  # without it: images/ read and reduced, the same factor
     assert load_scene(scene_dir, max_side=12).downscale == 4.0
+    # images/ already smaller than column 5 says: sized by its files, not reduced again
+    for image in (tmp_path / "gone").iterdir():
+        (scene_dir / "images" / image.name).write_bytes(image.read_bytes())
+    scene = load_scene(scene_dir, max_side=12)
+    assert (scene.height, scene.width, scene.downscale) == (9, 12, 1.0)
 
 
 def test_fit_limits_by_default_and_a_downscale_given_is_the_one_used(tiny_scene, tmp_path):

@@ -116,12 +116,15 @@ def load(path: Path, options: LoadOptions) -> Scene:
         raise SceneError(f"{file}: per-view bounds must satisfy 0 < near < far")
     near, far = near_far(0.9 * depths[:, 0].min(), 1.1 * depths[:, 1].max(), where=str(file))
 
+    # The factor the declared full size needs picks images_N/; images/ itself is sized by its files (they may
+    # already be smaller than column 5 says), in read_views.
     factor = side_factor(int(hwf[:, 0].max()), int(hwf[:, 1].max()), options.downscale, options.max_side)
     folder, remaining = _image_folder(path, factor, len(poses))
+    reduced_by = factor / remaining  # N for images_N/, 1 for images/
     image_paths = list_images(folder)
     if len(image_paths) != len(poses):
         raise SceneError(f"{file}: has {len(poses)} poses but {folder} holds {len(image_paths)} images")
-    views = read_views(image_paths, options, downscale=remaining)
+    views = read_views(image_paths, options, downscale=1.0 if reduced_by > 1 else options.downscale)
     sx = views.width / hwf[:, 1]
     sy = views.height / hwf[:, 0]
     bad = np.abs(sx / sy - 1.0) > ASPECT_TOLERANCE
@@ -144,7 +147,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         source=path,
         format=NAME,
         options=options,
-        downscale=factor * views.factor / remaining,
+        downscale=reduced_by * views.factor,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
         where=str(file),
         near_far_source="from file (0.9 x nearest and 1.1 x farthest depth bound)",
