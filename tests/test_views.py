@@ -91,3 +91,21 @@ def test_dropping_every_training_view_is_refused(tiny_scene):
     fewer = scene.without_views([scene.image_names[scene.splits["train"][0]]])
     assert fewer.n_views == scene.n_views - 1 and len(fewer.splits["test"]) == len(scene.splits["test"])
     torch.testing.assert_close(fewer.images[fewer.splits["test"][0]], scene.images[scene.splits["test"][0]])
+
+
+def test_a_held_out_view_far_below_the_others_is_named_only_when_no_training_view_is(tiny_scene):
+    from nerfmeta.fit.evaluate import EvalResult
+    from nerfmeta.fit.loop import FitResult, FitState
+    from nerfmeta.fit.run import _suspect_views
+
+    scene = load_scene(tiny_scene)
+    test_names = [scene.image_names[i] for i in scene.splits["test"]]
+    final = EvalResult(psnr=26.0, ssim=None, samples_per_ray=1.0, renders=(), view_psnrs=(30.0, 29.0, 15.0, 31.0))
+    clean_train = torch.full((len(scene.splits["train"]),), 25.0)
+    rows = _suspect_views(scene, FitResult(FitState(), final, view_psnr=clean_train))
+    assert [(r["view"], r["split"], r["below_median_db"]) for r in rows] == [(test_names[2], "test", 14.0)]
+    one_bad = clean_train.clone()
+    one_bad[3] = 10.0  # a training view far below: it is named, the held-out ones wait for the next fit
+    assert [r["split"] for r in _suspect_views(scene, FitResult(FitState(), final, view_psnr=one_bad))] == ["train"]
+    near = EvalResult(psnr=26.0, ssim=None, samples_per_ray=1.0, renders=(), view_psnrs=(30.0, 29.0, 20.0, 31.0))
+    assert _suspect_views(scene, FitResult(FitState(), near, view_psnr=clean_train)) == []  # 9 dB: under the line

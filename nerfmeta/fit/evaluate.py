@@ -100,6 +100,8 @@ class EvalResult:
     samples_per_ray: float
     renders: tuple[ViewRender, ...]
     lpips: float | None = None
+    view_psnrs: tuple[float, ...] = ()
+    """Each view's PSNR, in the order rendered (``psnr`` is their mean)."""
 
 
 def evaluate_views(
@@ -138,4 +140,5 @@ def evaluate_views(
         samples_per_ray=spr,
         renders=tuple(renders),
         lpips=None if lpipses is None else sum(lpipses) / len(lpipses),
+        view_psnrs=tuple(psnrs),
     )

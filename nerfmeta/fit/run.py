@@ -47,7 +47,7 @@ from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_mo
 from nerfmeta.geometry.runs import fit_geometry
 from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepRecord, fit
 from nerfmeta.fit.sampler import fit_space
-from nerfmeta.fit.views import suspect_views
+from nerfmeta.fit.views import SUSPECT_DB, TEST_SUSPECT_DB, suspect_views
 from nerfmeta.render.ndc import BD_FACTOR, NEAR_FACTOR
 from nerfmeta.init import WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
@@ -457,8 +457,9 @@ class FitSummary:
     guard_events: list[dict[str, Any]]
     """The divergence guard's rollbacks."""
     suspect_views: list[dict[str, Any]]
-    """Training views the fit could not reconcile with the others (a wrong pose, most often): each one's name,
-    PSNR over the last steps and dB below the median training view (:mod:`nerfmeta.fit.views`); worst first."""
+    """Views the fit could not reconcile with the others (a wrong pose, most often): each one's name, split, PSNR
+    (training views: over the last steps) and dB below its split's median (:mod:`nerfmeta.fit.views`); training
+    views, else held-out ones; worst first."""
     init_load_s: float | None = None
     """Wall seconds to build the starting model (read and hash-check a saved init, or draw scratch weights);
     outside ``time_s``; None for a resumed fit (its start was loaded in an earlier process)."""
@@ -526,21 +527,26 @@ def summarize(config: RunConfig, scene, model, result: FitResult, init: InitInfo
 
 
 def _suspect_views(scene, result: FitResult) -> list[dict[str, Any]]:
-    """``summary.json``'s suspect views (:func:`~nerfmeta.fit.views.suspect_views`), warned about by name."""
-    if result.view_psnr is None:
-        return []
-    train = scene.splits["train"]
-    rows = [{"view": scene.image_names[train[i]] if scene.image_names else str(train[i]),
-             "psnr": round(float(result.view_psnr[i]), 2), "below_median_db": round(gap, 2)}
-            for i, gap in suspect_views(result.view_psnr)]
-    if rows:
-        shown = ", ".join(f"{r['view']} ({r['below_median_db']:.1f} dB)" for r in rows[:8])
-        more = f" and {len(rows) - 8} more" if len(rows) > 8 else ""
-        log.warning("%d training view(s) render far worse than the median training view: %s%s; their camera poses are "
-                    "likely wrong (structure from motion can place a photo on the wrong side of a look-alike scene). "
-                    "Fit again without them: --drop-views %s", len(rows), shown, more,
-                    ",".join(Path(r["view"]).name for r in rows))
-    return rows
+    """``summary.json``'s suspect views (:mod:`nerfmeta.fit.views`): training views far below the median training
+    view, else held-out views far below theirs; warned about by name."""
+    def rows(split: str, psnr: torch.Tensor, below_db: float) -> list[dict[str, Any]]:
+        views = scene.splits[split]
+        return [{"view": scene.image_names[views[i]] if scene.image_names else str(views[i]), "split": split,
+                 "psnr": round(float(psnr[i]), 2), "below_median_db": round(gap, 2)}
+                for i, gap in suspect_views(psnr, below_db=below_db)]
+
+    found = [] if result.view_psnr is None else rows("train", result.view_psnr, SUSPECT_DB)
+    if not found and result.final is not None and result.final.view_psnrs:
+        found = rows("test", torch.tensor(result.final.view_psnrs), TEST_SUSPECT_DB)
+    if found:
+        kind = "training" if found[0]["split"] == "train" else "held-out"
+        shown = ", ".join(f"{r['view']} ({r['below_median_db']:.1f} dB)" for r in found[:8])
+        more = f" and {len(found) - 8} more" if len(found) > 8 else ""
+        log.warning("%d %s view(s) render far worse than the median %s view: %s%s; their camera poses are likely "
+                    "wrong (structure from motion can place a photo on the wrong side of a look-alike scene). Fit again "
+                    "without them: --drop-views %s", len(found), kind, kind, shown, more,
+                    ",".join(Path(r["view"]).name for r in found))
+    return found
 
 
 def _lpips_note(config: RunConfig, final, decisions: dict[str, Any]) -> str:
