@@ -32,7 +32,8 @@ def test_view_errors_are_a_decayed_mean_per_view_in_float64():
 
 def test_a_view_with_too_few_rays_is_not_judged():
     errors = ViewErrors.empty(2)
-    errors.add(torch.zeros(int(MIN_RAYS), dtype=torch.long), torch.zeros(int(MIN_RAYS), 3), torch.full((int(MIN_RAYS), 3), 0.1))
+    n = int(MIN_RAYS)
+    errors.add(torch.zeros(n, dtype=torch.long), torch.zeros(n, 3), torch.full((n, 3), 0.1))
     psnr = errors.psnr()
     assert psnr[0].item() == pytest.approx(20.0) and math.isnan(psnr[1].item())
 
@@ -56,7 +57,8 @@ def _scene_with_a_wrong_view(tiny_scene):
 
 
 def test_a_fit_names_the_one_view_that_no_pose_fits(tiny_scene):
-    grid = {**dataclasses.asdict(default_config("grid")), "coarse_iters": 0, "growth_steps": [], "num_voxels": 8000, "view_dependent": False}
+    grid = {**dataclasses.asdict(default_config("grid")), "coarse_iters": 0, "growth_steps": [], "num_voxels": 8000,
+            "view_dependent": False}
     found = {}
     for name, scene in zip(("clean", "one wrong"), _scene_with_a_wrong_view(tiny_scene)):
         model = build_model("grid", config_from_dict("grid", grid), scene.bounds, seed=0)

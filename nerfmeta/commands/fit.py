@@ -32,8 +32,8 @@ FREEZE_HELP = (
     "so K = 1 freezes the density grid (geometry), K = 2 also the feature grid (only the colour MLP adapts)"
 )
 
-RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "max_side", "normalize", "background", "scene_type",
-               "ndc_near_factor", "drop_views", "device")
+RUN_OPTIONS = ("backbone", "init", "freeze", "renders", "downscale", "max_side", "normalize", "background",
+               "scene_type", "ndc_near_factor", "drop_views", "device")
 """The :class:`RunConfig` fields that are options (the scene is positional; ``model`` is ``--set``)."""
 FIT_FLAGS = {"time_budget_s": "--time-budget", "final_ssim": "--eval-ssim"}
 """Spellings of :class:`FitConfig` fields that differ from the field name (kept from earlier releases)."""
@@ -60,9 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         p, RunConfig, only=RUN_OPTIONS,
         choices={"backbone": sorted(BACKBONES), "scene_type": ("auto", *SCENE_TYPES)},
         parsers={"background": parse_background, "drop_views": parse_names},
-        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "max_side": "PX", "background": "COLOUR",
-                  "device": "DEV",
-                  "drop_views": "NAMES"},
+        metavars={"init": "SPEC", "freeze": "K", "renders": "N", "downscale": "F", "max_side": "PX",
+                  "background": "COLOUR", "device": "DEV", "drop_views": "NAMES"},
         notes={
             "init": "auto: with a zoo holding priors of the fit's backbone, classify the scene with the zoo's classifier and "
                     "start from its category model, or from the meta-learned initialisation for an unknown category, where "

@@ -156,7 +156,8 @@ class Scene:
         if unknown:
             named = (f"views are named as in {', '.join(self.image_names[:3])}, ..." if self.image_names
                      else "its views have no names")
-            raise SceneError(f"{self.source}: --drop-views names {', '.join(unknown)}, not a view of this scene ({named})")
+            raise SceneError(f"{self.source}: --drop-views names {', '.join(unknown)}, not a view of this scene "
+                             f"({named})")
         drop = {by_name[n] for n in names}
         keep = [i for i in range(self.n_views) if i not in drop]
         new_index = {old: new for new, old in enumerate(keep)}

@@ -1,4 +1,4 @@
-"""Training views that the fit cannot reconcile with the others (a wrong camera pose, most often).
+"""Views that the fit cannot reconcile with the others (a wrong camera pose, most often).
 
 Structure from motion can register a photo confidently and wrongly: on 100 of lego's training views
 given as a photo folder, COLMAP placed 6 on the far side of the model, 178 degrees from their true
@@ -11,8 +11,9 @@ within 3.8 dB. The margin is narrow on both sides, and measured on one failure.
 The fit keeps each training view's squared error from its own training batches (no extra renders), in
 a window of about the last :data:`WINDOW_STEPS` steps (:class:`ViewErrors`); at the end the views more
 than :data:`SUSPECT_DB` dB below the median are named (:func:`suspect_views`) in a warning and in
-``summary.json``; where none is, the held-out views more than :data:`TEST_SUSPECT_DB` dB below theirs. Nothing is dropped on the fit's own say-so: ``nerfmeta fit --drop-views`` leaves
-named views out of the next fit.
+``summary.json``; where none is, the held-out views more than :data:`TEST_SUSPECT_DB` dB below theirs
+(from the final evaluation's per-view PSNR). Nothing is dropped on the fit's own say-so: ``nerfmeta fit
+--drop-views`` leaves named views out of the next fit.
 """
 
 from __future__ import annotations
