@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 from dataclasses import replace
+from pathlib import PurePath
 
 import pytest
 import torch
@@ -88,6 +89,11 @@ def test_fit_writes_suspect_views_and_drop_views_leaves_them_out(tiny_scene, tmp
 
 def test_dropping_every_training_view_is_refused(tiny_scene):
     scene = load_scene(tiny_scene)
+    train_name, test_name = scene.image_names[scene.splits["train"][1]], scene.image_names[scene.splits["test"][1]]
+    assert PurePath(train_name).name == PurePath(test_name).name  # train/r_1.png and test/r_1.png
+    with pytest.raises(SceneError, match="is more than one view"):  # so the file name alone is not enough
+        scene.without_views([PurePath(train_name).name])
+    assert scene.without_views([train_name]).n_views == scene.n_views - 1
     with pytest.raises(SceneError, match="leaves no training view"):
         scene.without_views([scene.image_names[i] for i in scene.splits["train"]])
     fewer = scene.without_views([scene.image_names[scene.splits["train"][0]]])

@@ -70,7 +70,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     "init keeps its backbone config",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
-            "drop_views": "comma-separated, e.g. r_4.png,r_15.png; a fit names its suspect views with this option",
+            "drop_views": "comma-separated, e.g. images/r_4.png,images/r_15.png (a file name alone where it names one "
+                          "view); a fit names its suspect views with this option",
             "device": "cpu, cuda or cuda:N",
         },
         defaults={"backbone": "the --init model's backbone, else grid (also with --init auto: the shipped zoo's "

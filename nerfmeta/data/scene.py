@@ -149,16 +149,22 @@ class Scene:
         """
         if not names:
             return self
-        by_name: dict[str, int] = {}
+        by_name: dict[str, set[int]] = {}
         for i, name in enumerate(self.image_names):
-            by_name[name] = by_name[PurePath(name).name] = i
+            for key in {name, PurePath(name).name}:
+                by_name.setdefault(key, set()).add(i)
         unknown = [n for n in names if n not in by_name]
         if unknown:
             named = (f"views are named as in {', '.join(self.image_names[:3])}, ..." if self.image_names
                      else "its views have no names")
             raise SceneError(f"{self.source}: --drop-views names {', '.join(unknown)}, not a view of this scene "
                              f"({named})")
-        drop = {by_name[n] for n in names}
+        ambiguous = [n for n in names if len(by_name[n]) > 1]
+        if ambiguous:
+            n = ambiguous[0]
+            raise SceneError(f"{self.source}: --drop-views {n} is more than one view "
+                             f"({', '.join(self.image_names[i] for i in sorted(by_name[n]))}); give its full name")
+        drop = {next(iter(by_name[n])) for n in names}
         keep = [i for i in range(self.n_views) if i not in drop]
         new_index = {old: new for new, old in enumerate(keep)}
         splits = {k: tuple(new_index[i] for i in v if i in new_index) for k, v in self.splits.items()}

@@ -545,7 +545,7 @@ def _suspect_views(scene, result: FitResult) -> list[dict[str, Any]]:
         log.warning("%d %s view(s) render far worse than the median %s view: %s%s; their camera poses are likely "
                     "wrong (structure from motion can place a photo on the wrong side of a look-alike scene). Fit again "
                     "without them: --drop-views %s", len(found), kind, kind, shown, more,
-                    ",".join(Path(r["view"]).name for r in found))
+                    ",".join(r["view"] for r in found))
     return found
 
 
