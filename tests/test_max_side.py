@@ -10,7 +10,8 @@ import torch
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
 from nerfmeta.data.common import side_factor
-from nerfmeta.fit.run import MAX_SIDE, RunConfig
+from nerfmeta.data.images import MAX_SIDE
+from nerfmeta.fit.run import RunConfig
 
 
 @pytest.mark.parametrize("height,width,factor,max_side,want", [

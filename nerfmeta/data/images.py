@@ -35,6 +35,10 @@ from nerfmeta.errors import SceneError
 log = logging.getLogger(__name__)
 
 DEFAULT_MAX_PIXELS = 64_000_000
+MAX_SIDE = 1600
+"""Default longest image side nerfmeta works at: the photos ``nerfmeta poses`` prepares, and the images a fit reads
+(``RunConfig.max_side``); nerfstudio's automatic downscale target. A grid of at most 160 voxels a side cannot use
+more, and a full-size evaluation of a 4032 x 3024 capture would render 12 M rays a view."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 EXIF_ORIENTATION = 0x0112
 TRANSPOSING_ORIENTATIONS = (5, 6, 7, 8)

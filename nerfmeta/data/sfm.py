@@ -52,7 +52,7 @@ import numpy as np
 from PIL import Image
 
 from nerfmeta.config import bounded
-from nerfmeta.data.images import decode_array, image_shape, list_images
+from nerfmeta.data.images import MAX_SIDE, decode_array, image_shape, list_images
 from nerfmeta.data.registry import FORMATS
 from nerfmeta.errors import SceneError
 from nerfmeta.io import write_json
@@ -91,7 +91,7 @@ Progress = Callable[[str, int, int], None]
 class SfmConfig:
     """How camera poses are computed from photos."""
 
-    max_side: int = bounded(1600, low=16)
+    max_side: int = bounded(MAX_SIDE, low=16)
     """Longest image side used (larger photos are downscaled on load, area filter); the written images have it."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     """Which pairs are matched: every pair, or neighbours in file-name order (for a video's frames; faster); ``auto``:

@@ -39,6 +39,7 @@ import torch
 from nerfmeta.budget import check_fit_fits
 from nerfmeta.config import bounded
 from nerfmeta.data import load_scene
+from nerfmeta.data.images import MAX_SIDE
 from nerfmeta.data.sfm import folded_walk_note, walk_jumps
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import RadianceModel
@@ -58,11 +59,6 @@ from nerfmeta.runfolder import run_folder, write_summary
 log = logging.getLogger(__name__)
 
 RENDERED_VIEWS = 4
-
-MAX_SIDE = 1600
-"""Default longest image side of a fit (:attr:`RunConfig.max_side`): nerfstudio's automatic downscale target, and
-``nerfmeta poses``' default for photos. A grid of at most 160 voxels a side cannot use more, and a full-size
-evaluation of a 4032 x 3024 capture would render 12 M rays a view."""
 
 
 @dataclass(frozen=True)

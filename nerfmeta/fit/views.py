@@ -22,6 +22,9 @@ from dataclasses import dataclass
 
 import torch
 
+from nerfmeta.fit.evaluate import MSE_FLOOR
+from nerfmeta.metrics import mse_to_psnr
+
 WINDOW_STEPS = 100
 """Steps over which a view's error is averaged (an exponential window): late enough that the model has
 settled, long enough that every view has thousands of rays (4096 rays a step over 100 views: ~4000)."""
@@ -68,8 +71,7 @@ class ViewErrors:
 
     def psnr(self) -> torch.Tensor:
         """(V,) PSNR of each view over the window; NaN where it has fewer than :data:`MIN_RAYS` rays."""
-        mse = self.sse / self.rays.clamp(min=1e-12)
-        out = -10.0 * torch.log10(mse.clamp(min=1e-10))
+        out = mse_to_psnr((self.sse / self.rays.clamp(min=1e-12)).clamp(min=MSE_FLOOR))
         return torch.where(self.rays >= MIN_RAYS, out, torch.full_like(out, float("nan")))
 
 
