@@ -184,7 +184,7 @@ def test_missing_frame_image(tmp_path: Path, fails: Callable[..., str]) -> None:
 def test_unreadable_frame_image(tmp_path: Path, fails: Callable[..., str]) -> None:
     scene = blender_scene(tmp_path / "s")
     (scene / "train" / "r_1.png").write_bytes(b"\x89PNG not really")
-    assert "r_1.png: not a readable PNG or JPEG image" in fails(scene)
+    assert "r_1.png: not a readable PNG, JPEG or HEIC image" in fails(scene)
 
 
 def test_truncated_frame_image(tmp_path: Path, fails: Callable[..., str]) -> None:

@@ -228,3 +228,48 @@ def test_modes_without_a_faithful_reading_are_refused(tmp_path: Path) -> None:
     Image.new("F", (2, 1), 0.5).save(tmp_path / "f.tiff")
     with pytest.raises(SceneError, match=r"f\.tiff: unsupported pixel mode F"):
         read_image(tmp_path / "f.tiff")
+
+
+# --- HEIC/HEIF phone photos (pillow-heif) ------------------------------------------------------
+
+
+def _blocks(height: int, width: int) -> np.ndarray:
+    """Flat 8-pixel blocks of distinct colours (lossy HEVC keeps their means close)."""
+    rng = np.random.default_rng(0)
+    cells = rng.integers(0, 256, (height // 8, width // 8, 3), dtype=np.uint8)
+    return np.repeat(np.repeat(cells, 8, axis=0), 8, axis=1)
+
+
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_heic_photo_reads_as_shown(tmp_path: Path, orientation: int) -> None:
+    pytest.importorskip("pillow_heif")
+    shown = _blocks(32, 48)
+    stored = np.ascontiguousarray(np.rot90(shown, k=1)) if orientation == 6 else shown  # 6: turn clockwise to show
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    images_mod._register_heif()
+    Image.fromarray(stored).save(tmp_path / "IMG_0001.HEIC", exif=exif.tobytes(), quality=95)
+    assert image_shape(tmp_path / "IMG_0001.HEIC") == (32, 48)
+    image = read_image(tmp_path / "IMG_0001.HEIC")
+    assert image.shape == (32, 48, 3)
+    assert (image - torch.from_numpy(shown).float() / 255).abs().mean() < 4 / 255
+    assert images_mod.list_images(tmp_path) == [tmp_path / "IMG_0001.HEIC"]
+
+
+def test_heic_without_pillow_heif_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "IMG_0002.heic").write_bytes(b"\x00\x00\x00\x18ftypheic")
+    monkeypatch.setattr(images_mod, "_register_heif", lambda: False)
+    with pytest.raises(SceneError, match=r"IMG_0002\.heic: a HEIC/HEIF photo, and reading one needs pillow-heif"):
+        image_shape(tmp_path / "IMG_0002.heic")
+
+
+def test_a_folder_of_images_nerfmeta_does_not_read_names_them(tmp_path: Path) -> None:
+    from nerfmeta.data.registry import load_scene
+
+    for k in range(3):
+        (tmp_path / f"DSC_{k}.DNG").write_bytes(b"raw")
+    (tmp_path / "cover.webp").write_bytes(b"webp")
+    (tmp_path / "notes.txt").write_text("not an image")
+    with pytest.raises(SceneError, match=r"holds images nerfmeta does not read \(3 \.dng, 1 \.webp files\); it reads "
+                                         r"PNG, JPEG and HEIC/HEIF"):
+        load_scene(tmp_path)

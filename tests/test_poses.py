@@ -330,3 +330,35 @@ def test_fit_on_photos_names_the_ones_left_out_each_time(tmp_path: Path, monkeyp
 def test_photo_folder_is_not_a_scene_without_pycolmap_hint(arc, tmp_path: Path) -> None:
     with pytest.raises(SceneError, match="nerfmeta poses PHOTOS --out SCENE"):
         load_scene(arc[0])
+
+
+def test_heic_phone_photos_are_posed_under_jpeg_names(arc, tmp_path: Path) -> None:
+    """An iPhone capture: HEIC files stored sideways with EXIF orientation 6 (as a portrait shot is kept)."""
+    pytest.importorskip("pillow_heif")
+    from nerfmeta.data import images
+
+    folder, true = arc
+    heic = tmp_path / "phone"
+    heic.mkdir()
+    images._register_heif()
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    for path in sorted(folder.glob("view_*.png")):
+        stored = np.ascontiguousarray(np.rot90(np.asarray(Image.open(path).convert("RGB")), k=1))
+        Image.fromarray(stored).save(heic / f"{path.stem}.HEIC", exif=exif.tobytes(), quality=95)
+    result = compute_poses(heic, tmp_path / "scene", SfmConfig(threads=1))
+    doc = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    assert result.registered == tuple(f"view_{k:03d}.jpg" for k in range(VIEWS)) and not result.unregistered
+    assert WIDTH - 4 <= doc["w"] <= WIDTH and HEIGHT - 4 <= doc["h"] <= HEIGHT  # upright as shown (undistortion crops)
+    rotation_deg, centre = sfm_scenes.pose_errors(np.array([f["transform_matrix"] for f in doc["frames"]]), true)
+    assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE
+    assert load_scene(tmp_path / "scene").images.shape[0] == VIEWS
+
+
+def test_one_shot_in_two_formats_is_refused(tmp_path: Path) -> None:
+    from nerfmeta.data.sfm import prepared_names
+
+    assert prepared_names([Path("a.png"), Path("IMG_1.heic"), Path("b.HEIF")]) == {
+        "a.png": "a.png", "IMG_1.heic": "IMG_1.jpg", "b.HEIF": "b.jpg"}
+    with pytest.raises(SceneError, match=r"IMG_1\.jpg and IMG_1\.HEIC would both be IMG_1\.jpg in the scene"):
+        prepared_names([Path("IMG_1.jpg"), Path("IMG_1.HEIC")])

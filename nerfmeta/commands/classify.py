@@ -16,8 +16,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Classify SCENE from all of its views (every split): softmax per view, averaged over the views, "
             "plus the unknown-category decision calibrated when the classifier was trained. SCENE is a scene "
-            "folder in any supported format, a folder of PNG/JPEG images, or one image; any size, RGB or RGBA "
-            "(composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
+            "folder in any supported format, a folder of PNG, JPEG or HEIC images, or one image; any size, RGB or "
+            "RGBA (composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
             '{"category", "confidence", "unknown", "probabilities", "views", "score"} on stdout.'
         ),
     )

@@ -61,11 +61,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="camera poses for a folder of photos (structure from motion); writes a scene 'fit' reads",
         description=textwrap.fill(
             "Run structure from motion (pycolmap: SIFT features, exhaustive or sequential matching, incremental "
-            "mapping) on the PNG/JPEG photos of PHOTOS and write SCENE: transforms.json (nerfstudio layout, OpenGL "
-            "camera-to-world), images/ (the photos as used: EXIF orientation applied, downscaled to --max-side, "
+            "mapping) on the PNG, JPEG or HEIC photos of PHOTOS and write SCENE: transforms.json (nerfstudio layout, "
+            "OpenGL camera-to-world), images/ (the photos as used: EXIF orientation applied, downscaled to --max-side, "
             "undistorted), colmap/ (the sparse model) and sfm.json. PHOTOS is only read.", width=100),
     )
-    p.add_argument("photos", metavar="PHOTOS", help="folder of photos (PNG/JPEG, directly in it or in its images/)")
+    p.add_argument("photos", metavar="PHOTOS",
+                   help="folder of photos (PNG, JPEG or HEIC, directly in it or in its images/)")
     p.add_argument("--out", required=True, metavar="SCENE", help="scene folder to write (must be new or empty)")
     add_sfm_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace SCENE if it holds a scene 'nerfmeta poses' wrote")

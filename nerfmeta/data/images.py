@@ -5,8 +5,10 @@ Images are handled as float32 tensors in [0, 1]: ``(H, W, 3)`` RGB or ``(H, W, 4
 255 and 16-bit values by 65535.
 
 Files are opened with Pillow, which reads the header (size, mode, EXIF) without decoding the
-pixels. Every pixel mode is converted explicitly (:func:`pixel_array`): 1-bit, grayscale (8 and
-16 bit), grayscale + alpha, palette (with its transparency), RGB, RGBA, CMYK and YCbCr; a
+pixels. HEIC/HEIF photos (an iPhone's default format) are read through pillow-heif's Pillow
+plugin, which applies the photo's rotation as it decodes and resets its EXIF orientation to 1.
+Every pixel mode is converted explicitly (:func:`pixel_array`): 1-bit, grayscale (8 and 16
+bit), grayscale + alpha, palette (with its transparency), RGB, RGBA, CMYK and YCbCr; a
 transparency key (PNG ``tRNS``) becomes an alpha channel; EXIF orientation is applied, so sizes
 and pixels are those a viewer shows (a pose tool that ignored the tag saw the other size; the
 parsers' size checks, LLFF's aspect and nerfstudio's ``w``/``h``, then refuse the scene rather than
@@ -18,6 +20,7 @@ their full precision.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import warnings
@@ -39,7 +42,12 @@ MAX_SIDE = 1600
 """Default longest image side nerfmeta works at: the photos ``nerfmeta poses`` prepares, and the images a fit reads
 (``RunConfig.max_side``); nerfstudio's automatic downscale target. A grid of at most 160 voxels a side cannot use
 more, and a full-size evaluation of a 4032 x 3024 capture would render 12 M rays a view."""
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+HEIF_SUFFIXES = (".heic", ".heif")
+"""Phone photos in HEIF (an iPhone's default since iOS 11): read with pillow-heif (libheif)."""
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg") + HEIF_SUFFIXES
+OTHER_IMAGE_SUFFIXES = (".webp", ".avif", ".tif", ".tiff", ".bmp", ".gif", ".jxl", ".dng", ".cr2", ".cr3", ".nef",
+                        ".arw", ".raf", ".orf", ".rw2")
+"""Image files nerfmeta does not read, named in the error for a folder that holds only those (convert them first)."""
 EXIF_ORIENTATION = 0x0112
 TRANSPOSING_ORIENTATIONS = (5, 6, 7, 8)
 """EXIF orientations that turn the picture by 90 degrees (the shown size is the stored one transposed)."""
@@ -62,18 +70,32 @@ def _pillow_warnings_logged(path: Path) -> Iterator[None]:
         log.info("%s: %s", path, w.message)
 
 
+@functools.cache
+def _register_heif() -> bool:
+    """Register pillow-heif's HEIC/HEIF opener with Pillow (once); False when pillow-heif is not installed."""
+    try:
+        import pillow_heif
+    except ImportError:
+        return False
+    pillow_heif.register_heif_opener()
+    return True
+
+
 @contextmanager
 def _open(path: Path) -> Iterator[Image.Image]:
     """The image at ``path`` opened lazily (header only); one-line SceneError for anything unreadable."""
     if not path.is_file():
         raise SceneError(f"{path}: image file not found")
+    if path.suffix.lower() in HEIF_SUFFIXES and not _register_heif():
+        raise SceneError(f"{path}: a HEIC/HEIF photo, and reading one needs pillow-heif (pip install pillow-heif), "
+                         "which is not installed; or convert the photos to JPEG")
     try:
         with _pillow_warnings_logged(path):
             image = Image.open(path)
     except Image.DecompressionBombError as err:
         raise SceneError(f"{path}: image is too large to open safely ({_short(err)})") from err
     except Exception as err:  # Pillow raises many types for a bad file
-        raise SceneError(f"{path}: not a readable PNG or JPEG image ({_short(err)})") from err
+        raise SceneError(f"{path}: not a readable PNG, JPEG or HEIC image ({_short(err)})") from err
     with image:
         yield image
 
@@ -128,7 +150,7 @@ def read_image(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS)
     decoded.
 
     Args:
-        path: a PNG (8 or 16 bit) or JPEG file; grayscale, gray+alpha, RGB or RGBA.
+        path: a PNG (8 or 16 bit), JPEG or HEIC/HEIF file; grayscale, gray+alpha, RGB or RGBA.
         max_pixels: largest accepted ``height * width``.
 
     Returns:
@@ -308,11 +330,24 @@ def downscale_image(image: torch.Tensor, factor: float) -> torch.Tensor:
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files (PNG/JPEG, any case) directly in ``folder``, sorted by name."""
+    """Image files (PNG, JPEG, HEIC/HEIF; any case) directly in ``folder``, sorted by name."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def unread_images(folder: str | os.PathLike) -> dict[str, int]:
+    """How many image files of each kind nerfmeta does not read (:data:`OTHER_IMAGE_SUFFIXES`) are directly in
+    ``folder``, by lower-case suffix (empty for a missing folder)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return {}
+    counts: dict[str, int] = {}
+    for p in folder.iterdir():
+        if p.is_file() and p.suffix.lower() in OTHER_IMAGE_SUFFIXES:
+            counts[p.suffix.lower()] = counts.get(p.suffix.lower(), 0) + 1
+    return dict(sorted(counts.items()))
 
 
 def _is_16bit_colour_png(path: Path) -> bool:

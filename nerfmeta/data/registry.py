@@ -15,7 +15,7 @@ from typing import Callable
 
 from nerfmeta.data import blender, llff, nerfstudio, npz
 from nerfmeta.data.common import LoadOptions
-from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images
+from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images, unread_images
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError, SceneError
 
@@ -71,6 +71,10 @@ def detect_format(path: str | os.PathLike) -> SceneFormat:
                 f"{path}: has images but no camera poses: add transforms_train.json (Blender), "
                 f"transforms.json (nerfstudio) or poses_bounds.npy (LLFF); {POSE_TOOLS_HINT}"
             )
+        if other := unread_images(path) or unread_images(path / "images"):
+            found = ", ".join(f"{n} {suffix}" for suffix, n in other.items())
+            raise SceneError(f"{path}: holds images nerfmeta does not read ({found} files); it reads PNG, JPEG and "
+                             "HEIC/HEIF photos: convert them to one of those (e.g. JPEG)")
     raise SceneError(f"{path}: unknown scene format (supported formats: {_supported()})")
 
 

@@ -1,11 +1,12 @@
 """Camera poses from a folder of photos: structure from motion with pycolmap.
 
-``PHOTOS/`` (PNG/JPEG, no pose file) -> ``SCENE/``, a nerfstudio scene that
+``PHOTOS/`` (PNG, JPEG or HEIC/HEIF; no pose file) -> ``SCENE/``, a nerfstudio scene that
 :mod:`nerfmeta.data.nerfstudio` reads::
 
     SCENE/transforms.json        fl_x, fl_y, cx, cy, w, h (PINHOLE), near, far, frames[file_path, transform_matrix]
     SCENE/images/NAME            the photos as fitted: EXIF orientation applied, longest side at most
-                                 ``max_side``, undistorted when the camera model has distortion
+                                 ``max_side``, undistorted when the camera model has distortion (a HEIC/HEIF
+                                 photo becomes ``STEM.jpg``: COLMAP does not read HEIF)
     SCENE/colmap/                the sparse model those poses come from (cameras/images/points3D.bin)
     SCENE/sfm.json               what happened: photos, registered, unregistered, reprojection error, seconds per phase,
                                  the matcher kept and any jumps of a walk left
@@ -52,7 +53,7 @@ import numpy as np
 from PIL import Image
 
 from nerfmeta.config import bounded
-from nerfmeta.data.images import MAX_SIDE, decode_array, image_shape, list_images
+from nerfmeta.data.images import HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_images
 from nerfmeta.data.registry import FORMATS
 from nerfmeta.errors import SceneError
 from nerfmeta.io import write_json
@@ -299,7 +300,7 @@ def photo_hash(paths: Sequence[Path], config: SfmConfig) -> str:
 
 
 def list_photos(folder: str | os.PathLike) -> list[Path]:
-    """The photos of ``folder`` (PNG/JPEG directly in it, else in its ``images/``), sorted by name."""
+    """The photos of ``folder`` (PNG, JPEG or HEIC/HEIF directly in it, else in its ``images/``), sorted by name."""
     folder = Path(folder)
     return list_images(folder) or list_images(folder / IMAGES)
 
@@ -332,6 +333,24 @@ def check_photos(paths: Sequence[Path], folder: Path) -> tuple[int, int]:
     return sizes[first]
 
 
+def prepared_names(paths: Sequence[Path]) -> dict[str, str]:
+    """The name each photo has in the SfM scene, by its own name: the same for PNG and JPEG, ``STEM.jpg`` for a
+    HEIC/HEIF photo (COLMAP reads no HEIF).
+
+    Raises:
+        SceneError: two photos would get one name (``IMG_1.HEIC`` beside ``IMG_1.jpg``: the same shot twice, at a guess).
+    """
+    names: dict[str, str] = {}
+    taken: dict[str, str] = {}
+    for path in paths:
+        name = path.stem + ".jpg" if path.suffix.lower() in HEIF_SUFFIXES else path.name
+        if name.lower() in taken:
+            raise SceneError(f"{path.parent}: {taken[name.lower()]} and {path.name} would both be {name} in the scene "
+                             "(the same photo in two formats?); keep one of them")
+        names[path.name], taken[name.lower()] = name, path.name
+    return names
+
+
 def prepared_size(height: int, width: int, max_side: int) -> tuple[int, int]:
     """``(height, width)`` scaled so that the longest side is at most ``max_side`` (unchanged when it is)."""
     scale = min(1.0, max_side / max(height, width))
@@ -343,7 +362,7 @@ def prepare_photo(source: Path, dest: Path, size: tuple[int, int]) -> None:
     alpha composited on white, area-downscaled; a file that needs none of this is copied as it is."""
     array = decode_array(source)
     if array.shape[:2] == size and array.ndim == 3 and array.shape[2] == 3 and array.dtype == np.uint8 \
-            and _stored_as_shown(source):
+            and source.suffix.lower() == dest.suffix.lower() and _stored_as_shown(source):
         shutil.copyfile(source, dest)
         return
     if array.dtype != np.uint8:
@@ -396,9 +415,9 @@ class SfmResult:
     photos: int
     """Photos given."""
     registered: tuple[str, ...]
-    """Names of the photos that have a pose."""
+    """Names of the photos that have a pose, as in the scene (a HEIC/HEIF photo's as ``STEM.jpg``)."""
     unregistered: tuple[str, ...]
-    """Names of the photos that did not register."""
+    """Names of the photos (as in the photo folder) that did not register."""
     reprojection_error: float
     """Mean reprojection error of the sparse points, pixels."""
     points: int
@@ -701,6 +720,8 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         raise SceneError(f"{folder}: not a folder of photos")
     height, width = check_photos(paths, folder)
     size = prepared_size(height, width, config.max_side)
+    scene_names = prepared_names(paths)
+    own = {scene: name for name, scene in scene_names.items()}  # the photos' own names, for messages
     seconds: dict[str, float] = {}
     with run_folder(out, "poses", overwrite=overwrite, aside=True, protect=(folder,)) as run, \
             tempfile.TemporaryDirectory(prefix="nerfmeta-sfm-") as tmp, _colmap_quiet(verbose):
@@ -708,10 +729,10 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         prepared = work / "photos"
         prepared.mkdir()
         t0 = time.perf_counter()
-        names = [p.name for p in paths]
+        names = [scene_names[p.name] for p in paths]
         for k, path in enumerate(paths):
             progress("photos", k, len(paths))
-            prepare_photo(path, prepared / path.name, size)
+            prepare_photo(path, prepared / scene_names[path.name], size)
         progress("photos", len(paths), len(paths))
         seconds["photos"] = time.perf_counter() - t0
         matcher = "exhaustive" if config.matcher == "auto" else config.matcher
@@ -721,7 +742,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         model = reconstruct(prepared, names, attempt, replace(config, matcher=matcher), progress, seconds)
         registered = sorted(_posed(model))
         if len(registered) < MIN_PHOTOS or len(registered) < config.min_registered * len(names) - 1e-9:
-            raise _unregistered_error(folder, [n for n in names if n not in set(registered)], len(names), config)
+            raise _unregistered_error(folder, [own[n] for n in names if n not in set(registered)], len(names), config)
         jumps = model_jumps(model, registered)
         if jumps and config.matcher == "auto":  # a folded walk: match neighbours only, keep it if it folds less
             log.warning("%s: matching every pair folded the walk at %s (look-alike views from different sides); "
@@ -736,7 +757,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
                 model, registered, matcher, jumps = again, kept, "sequential", kept_jumps
             else:
                 draws = ()
-        missing = [n for n in names if n not in set(registered)]
+        missing = [own[n] for n in names if n not in set(registered)]
         if missing:
             log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
         t0 = time.perf_counter()
