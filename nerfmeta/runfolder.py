@@ -98,6 +98,7 @@ LAYOUTS: dict[str, Layout] = {layout.kind: layout for layout in (
            folders=("trials", "logs", "plots")),
     Layout("demo", "demo", (), folders=("scenes", "report"), runs=("fit",), legacy=("scenes/collection.json",)),
     Layout("poses", "poses", ("transforms.json", "sfm.json"), folders=("images", "colmap")),
+    Layout("frames", "fit VIDEO / poses VIDEO", ("frames.json", "frame_*.jpg")),  # a video's frames, in the cache
 )}
 
 

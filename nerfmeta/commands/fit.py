@@ -19,6 +19,7 @@ from tqdm import tqdm
 from nerfmeta import config as options
 from nerfmeta.data.registry import parse_background
 from nerfmeta.data.scene_type import SCENE_TYPES
+from nerfmeta.data.video import FrameConfig
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig, StepRecord
@@ -53,8 +54,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         epilog=backbone_fields_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file), or a folder of photos without poses "
-                   "(structure from motion is run first and its result cached; see 'nerfmeta poses')")
+    p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file), or a folder of photos without poses, "
+                   f"or a video (its sharpest frame in each of {FrameConfig.frames} equal stretches); structure from motion is run first "
+                   "and its result cached; see 'nerfmeta poses'")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
     options.add_config_options(
         p, RunConfig, only=RUN_OPTIONS,

@@ -14,9 +14,11 @@ import textwrap
 
 from nerfmeta import config as options
 from nerfmeta.data.sfm import SfmConfig
+from nerfmeta.data.video import MIN_FRAMES, FrameConfig, is_video
 from nerfmeta.errors import ConfigError
 
-PHASES = {"photos": "reading photos", "features": "SIFT features", "matching": "matching", "mapping": "mapping"}
+PHASES = {"frames": "video frames", "photos": "reading photos", "features": "SIFT features", "matching": "matching",
+          "mapping": "mapping"}
 """The phases :func:`~nerfmeta.data.sfm.compute_poses` reports, as the bars name them."""
 
 
@@ -33,7 +35,7 @@ class PhaseBars:
         if phase != self.phase:
             self.close()
             self.phase = phase
-            unit = "photo" if phase == "photos" or phase.startswith("mapping") else "step"
+            unit = "photo" if phase == "photos" or phase.startswith("mapping") else "frame" if phase == "frames" else "step"
             self.bar = tqdm(total=total, desc=PHASES.get(phase, phase), unit=unit, file=sys.stderr, dynamic_ncols=True)
         self.bar.n = done
         self.bar.refresh()
@@ -66,9 +68,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "undistorted), colmap/ (the sparse model) and sfm.json. PHOTOS is only read.", width=100),
     )
     p.add_argument("photos", metavar="PHOTOS",
-                   help="folder of photos (PNG, JPEG or HEIC, directly in it or in its images/)")
+                   help="folder of photos (PNG, JPEG or HEIC, directly in it or in its images/), or a video (MP4, MOV, "
+                        "...): the sharpest frame of each of --video-frames equal stretches of it")
     p.add_argument("--out", required=True, metavar="SCENE", help="scene folder to write (must be new or empty)")
     add_sfm_options(p)
+    p.add_argument("--video-frames", type=int, default=FrameConfig.frames, metavar="N",
+                   help=f"PHOTOS a video: frames kept (default {FrameConfig.frames}; at least {MIN_FRAMES})")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE if it holds a scene 'nerfmeta poses' wrote")
     p.set_defaults(func=run)
 
@@ -80,12 +85,33 @@ def _need_pycolmap() -> None:
         raise ConfigError("structure from motion needs pycolmap: pip install 'nerfmeta[poses]'") from None
 
 
-def poses_for_photos(scene: str, *, verbose: bool = False) -> str:
-    """``scene`` unchanged, or for a folder of photos without poses the cached SfM scene of them
-    (computed with the default :class:`SfmConfig` when not cached yet; bars on stderr). The photos
-    that did not register are named on stderr each time, from the cache too."""
-    from nerfmeta.data.sfm import REPORT, cache_root, cached_poses, is_photo_folder
+def frames_of_video(video: str, config: FrameConfig = FrameConfig()) -> str:
+    """The cached folder of ``video``'s frames (:func:`~nerfmeta.data.video.cached_frames`; a bar on stderr)."""
+    from nerfmeta.data.video import REPORT, cached_frames, frames_root
 
+    print(f"{video}: a video; keeping the sharpest frame of each of {config.frames} equal stretches of it (cached in "
+          f"{frames_root()})", file=sys.stderr, flush=True)
+    bars = PhaseBars()
+    try:
+        folder, cached = cached_frames(video, config, progress=bars)
+    finally:
+        bars.close()
+    report = json.loads((folder / REPORT).read_text())
+    print(f"{len(report['kept'])} of its {report['frames_in_video']} frames {'from the cache' if cached else 'kept'}, "
+          f"{report['size'][0]}x{report['size'][1]}: {folder}", file=sys.stderr, flush=True)
+    return str(folder)
+
+
+def poses_for_photos(scene: str, *, verbose: bool = False) -> str:
+    """``scene`` unchanged, or for a folder of photos without poses (or a video: its frames, :func:`frames_of_video`)
+    the cached SfM scene of them (computed with the default :class:`SfmConfig` when not cached yet; bars on stderr).
+    The photos that did not register are named on stderr each time, from the cache too."""
+    from nerfmeta.data.sfm import REPORT, cache_root, cached_poses, is_photo_folder
+    from nerfmeta.data.video import is_video
+
+    if is_video(scene):
+        _need_pycolmap()
+        scene = frames_of_video(scene)
     if not is_photo_folder(scene):
         return scene
     _need_pycolmap()
@@ -109,6 +135,10 @@ def run(args: argparse.Namespace) -> int:
 
     config = sfm_config_from(args)
     _need_pycolmap()
+    if is_video(args.photos):
+        if args.video_frames < MIN_FRAMES:
+            raise ConfigError(f"--video-frames {args.video_frames}: must be at least {MIN_FRAMES}")
+        args.photos = frames_of_video(args.photos, FrameConfig(frames=args.video_frames, max_side=config.max_side))
     bars = PhaseBars()
     try:
         result = compute_poses(args.photos, args.out, config, overwrite=args.overwrite, progress=bars,
