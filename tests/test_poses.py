@@ -231,9 +231,29 @@ def test_mixed_sizes_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str
     Image.fromarray(np.zeros((8, 10, 3), np.uint8)).save(folder / "view_009.png")
     line = _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
     assert "view_009.png: is 10x8 but view_000.png is 12x8" in line
-    Image.fromarray(np.zeros((12, 8, 3), np.uint8)).save(folder / "view_009.png")
-    assert "portrait and landscape mixed" in _fails(["poses", str(folder), "--out", str(tmp_path / "s")], capsys)
     assert not (tmp_path / "s").exists()
+
+
+def test_portrait_photos_among_landscape_ones_are_turned_and_posed(arc, tmp_path: Path, caplog) -> None:
+    """A phone held upright for some shots: those photos are turned a quarter to the others' orientation, and
+    each is posed as the camera that took the turned picture (rolled by the turn)."""
+    folder, true = arc
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    stored_turn = {2: 1, 5: 1, 7: -1}  # np.rot90's k: a quarter anticlockwise (turned back exactly), or clockwise
+    for k, path in enumerate(sorted(folder.glob("view_*.png"))):
+        image = np.asarray(Image.open(path).convert("RGB"))
+        Image.fromarray(np.ascontiguousarray(np.rot90(image, k=stored_turn.get(k, 0)))).save(mixed / path.name)
+    result = compute_poses(mixed, tmp_path / "scene", SfmConfig(threads=1))
+    assert result.turned == ("view_002.png", "view_005.png", "view_007.png") and len(result.registered) == VIEWS
+    assert "3 of 10 photos are portrait, the rest landscape: turned a quarter clockwise" in caplog.text
+    doc = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    assert doc["w"] > doc["h"]
+    estimated = np.array([f["transform_matrix"] for f in doc["frames"]])
+    estimated[7, :3, :3] = estimated[7, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # view 7 shows the scene upside down
+    rotation_deg, centre = sfm_scenes.pose_errors(estimated, true)
+    assert rotation_deg.max() < 1.0 and centre.max() < 0.01 * SCENE_SIZE
+    assert json.loads((tmp_path / "scene" / "sfm.json").read_text())["turned"] == list(result.turned)
 
 
 def test_photos_with_no_overlap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

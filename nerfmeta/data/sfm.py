@@ -311,8 +311,13 @@ def is_photo_folder(path: str | os.PathLike) -> bool:
     return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(list_photos(path))
 
 
-def check_photos(paths: Sequence[Path], folder: Path) -> tuple[int, int]:
-    """``(height, width)`` the photos share as shown (EXIF orientation applied); read from the headers.
+def check_photos(paths: Sequence[Path], folder: Path) -> tuple[tuple[int, int], frozenset[str]]:
+    """``((height, width), turned)``: the size the photos share as shown (EXIF orientation applied; read from the
+    headers) and the names of those shown the other way round (portrait among landscape, or the reverse).
+
+    A phone held upright for some shots and sideways for others takes both from one camera: SfM gets those photos
+    turned a quarter to the orientation most of them have (:func:`prepare_photo`), a pinhole camera rolled by 90
+    degrees with the same focal length, and poses them so. Ties keep the first photo's orientation.
 
     Raises:
         SceneError: fewer than :data:`MIN_PHOTOS`, an unreadable file, or photos of different sizes.
@@ -324,13 +329,14 @@ def check_photos(paths: Sequence[Path], folder: Path) -> tuple[int, int]:
     sizes = {p: image_shape(p) for p in paths}
     first = paths[0]
     for path, size in sizes.items():
-        if size != sizes[first] and sorted(size) == sorted(sizes[first]):
-            raise SceneError(f"{path}: is {size[1]}x{size[0]} but {first.name} is {sizes[first][1]}x{sizes[first][0]} "
-                             "(portrait and landscape mixed); rotate them to one orientation")
-        if size != sizes[first]:
+        if sorted(size) != sorted(sizes[first]):
             raise SceneError(f"{path}: is {size[1]}x{size[0]} but {first.name} is {sizes[first][1]}x{sizes[first][0]}; "
                              "all photos must come from one camera at one size")
-    return sizes[first]
+    other = [p for p in paths if sizes[p] != sizes[first]]
+    if 2 * len(other) > len(paths):
+        shared = sizes[other[0]]
+        return shared, frozenset(p.name for p in paths if sizes[p] != shared)
+    return sizes[first], frozenset(p.name for p in other)
 
 
 def prepared_names(paths: Sequence[Path]) -> dict[str, str]:
@@ -357,12 +363,15 @@ def prepared_size(height: int, width: int, max_side: int) -> tuple[int, int]:
     return max(1, round(height * scale)), max(1, round(width * scale))
 
 
-def prepare_photo(source: Path, dest: Path, size: tuple[int, int]) -> None:
-    """Write ``source`` to ``dest`` as RGB of ``size`` = (height, width): EXIF orientation applied,
-    alpha composited on white, area-downscaled; a file that needs none of this is copied as it is."""
+def prepare_photo(source: Path, dest: Path, size: tuple[int, int], *, turn: bool = False) -> None:
+    """Write ``source`` to ``dest`` as RGB of ``size`` = (height, width): EXIF orientation applied, turned a quarter
+    clockwise with ``turn`` (a portrait photo among landscape ones), alpha composited on white, area-downscaled; a file
+    that needs none of this is copied as it is."""
     array = decode_array(source)
+    if turn:
+        array = np.ascontiguousarray(np.rot90(array, k=-1))
     if array.shape[:2] == size and array.ndim == 3 and array.shape[2] == 3 and array.dtype == np.uint8 \
-            and source.suffix.lower() == dest.suffix.lower() and _stored_as_shown(source):
+            and not turn and source.suffix.lower() == dest.suffix.lower() and _stored_as_shown(source):
         shutil.copyfile(source, dest)
         return
     if array.dtype != np.uint8:
@@ -430,10 +439,13 @@ class SfmResult:
     """Photos of a walk whose camera turns by more than :data:`JUMP_DEG` from the previous one (:func:`walk_jumps`)."""
     draws: tuple[dict, ...] = ()
     """The neighbours' mapping draws, when there were several: mapper, seed, registered, jumps, agreement, and which was kept."""
+    turned: tuple[str, ...] = ()
+    """Photos (as in the photo folder) turned a quarter to the others' orientation (:func:`check_photos`)."""
 
     def as_json(self) -> dict:
         return {**asdict(self), "scene": str(self.scene), "registered": list(self.registered),
-                "unregistered": list(self.unregistered), "jumps": list(self.jumps), "draws": list(self.draws)}
+                "unregistered": list(self.unregistered), "jumps": list(self.jumps), "draws": list(self.draws),
+                "turned": list(self.turned)}
 
 
 def _posed(model) -> dict:
@@ -718,7 +730,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
     paths = list_photos(folder)
     if not folder.is_dir():
         raise SceneError(f"{folder}: not a folder of photos")
-    height, width = check_photos(paths, folder)
+    (height, width), turned = check_photos(paths, folder)
     size = prepared_size(height, width, config.max_side)
     scene_names = prepared_names(paths)
     own = {scene: name for name, scene in scene_names.items()}  # the photos' own names, for messages
@@ -732,9 +744,15 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         names = [scene_names[p.name] for p in paths]
         for k, path in enumerate(paths):
             progress("photos", k, len(paths))
-            prepare_photo(path, prepared / scene_names[path.name], size)
+            prepare_photo(path, prepared / scene_names[path.name], size, turn=path.name in turned)
         progress("photos", len(paths), len(paths))
         seconds["photos"] = time.perf_counter() - t0
+        if turned:
+            shown = sorted(turned)
+            log.warning("%s: %d of %d photos are %s, the rest %s: turned a quarter clockwise to match (so in the "
+                        "scene's images/): %s", folder, len(turned), len(paths),
+                        "landscape" if height > width else "portrait", "portrait" if height > width else "landscape",
+                        ", ".join(shown[:8]) + (f" and {len(shown) - 8} more" if len(shown) > 8 else ""))
         matcher = "exhaustive" if config.matcher == "auto" else config.matcher
         draws: tuple[dict, ...] = ()
         attempt = work / matcher
@@ -776,7 +794,8 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             log.warning("%s: %s", folder, jump_advice(jumps, config))
         result = SfmResult(run.path, len(names), tuple(registered), tuple(missing),
                            float(model.compute_mean_reprojection_error()), int(model.num_points3D()),
-                           {k: round(v, 3) for k, v in seconds.items()}, matcher, tuple(jumps), draws)
+                           {k: round(v, 3) for k, v in seconds.items()}, matcher, tuple(jumps), draws,
+                           tuple(sorted(turned)))
         write_json(run.dir / REPORT, {**result.as_json(), "config": asdict(config)})
         write_json(run.dir / TRANSFORMS, doc)
     return result
