@@ -21,6 +21,7 @@ from nerfmeta.data.sfm import (
     WORLD_FROM_COLMAP,
     prepared_size,
     quaternion_to_matrix,
+    axis_steps_deg,
     rotation_steps_deg,
     sampson_distances,
     walk_jumps,
@@ -139,11 +140,28 @@ def test_rotation_steps_between_neighbours() -> None:
     assert rotation_steps_deg(_turns_about_z([0, 180])) == pytest.approx([180])
 
 
+def _walk(degrees: list[float]) -> np.ndarray:
+    """Camera-to-world rotations of cameras looking level (their optical axis horizontal), turned about the vertical."""
+    level = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # camera z (backward) along world -y
+    return _turns_about_z(degrees) @ level
+
+
 def test_walk_jumps_name_a_folded_stretch() -> None:
     # a walk of 9-degree steps whose frames 8-13 were put a half turn away, as a fold of look-alike sides does
     angles = [9.0 * i + (180.0 if 8 <= i < 14 else 0.0) for i in range(24)]
-    assert walk_jumps(_turns_about_z(angles)) == [8, 14]
-    assert walk_jumps(_turns_about_z([9.0 * i for i in range(24)])) == []  # a whole walk (past 360 degrees too)
+    assert walk_jumps(_walk(angles)) == [8, 14]
+    assert walk_jumps(np.transpose(_walk(angles), (0, 2, 1)), world_to_camera=True) == [8, 14]  # COLMAP's way round
+    assert walk_jumps(_walk([9.0 * i for i in range(24)])) == []  # a whole walk (past 360 degrees too)
+
+
+def test_a_camera_that_only_rolls_is_no_jump() -> None:
+    """Photos taken with the phone turned (a quarter, or upside down): the camera rolls about its own axis."""
+    walk = _walk([9.0 * i for i in range(24)])
+    walk[5] = walk[5] @ _turns_about_z([180.0])[0]  # about the camera's own z: upside down
+    walk[11] = walk[11] @ _turns_about_z([90.0])[0]
+    assert rotation_steps_deg(walk)[4] == pytest.approx(180.0)  # the whole rotation says half a turn
+    assert axis_steps_deg(walk)[4] == pytest.approx(9.0) and walk_jumps(walk) == []
+    assert walk_jumps(np.transpose(walk, (0, 2, 1)), world_to_camera=True) == []
 
 
 def test_photos_in_no_order_have_no_walk() -> None:

@@ -70,7 +70,7 @@ MIN_PHOTOS = 3
 WALK_STEP_DEG = 30.0
 """Photos whose median turn between file-name neighbours is at most this are a walk (a video's frames)."""
 JUMP_DEG = 90.0
-"""A turn above this between neighbours of a walk is a jump (:func:`walk_jumps`)."""
+"""A turn of the viewing direction above this between neighbours of a walk is a jump (:func:`walk_jumps`)."""
 WORLD_FROM_COLMAP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """The rotation applied to COLMAP's world, as nerfstudio's ``colmap_to_json`` applies it (rows 0, 2, 1; the last negated)."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0])
@@ -253,13 +253,24 @@ def is_walk(rotations: np.ndarray, *, walk_deg: float = WALK_STEP_DEG) -> bool:
     return len(steps) >= 2 and float(np.median(steps)) <= walk_deg
 
 
-def walk_jumps(rotations: np.ndarray, *, jump_deg: float = JUMP_DEG) -> list[int]:
-    """Indices ``i`` where cameras ``i - 1 -> i`` of a walk (:func:`is_walk`) turn by more than ``jump_deg``; none
-    for cameras that are no walk. A jump in a walk is almost always a reconstruction that folded look-alike views
-    from different sides."""
+def axis_steps_deg(rotations: np.ndarray, *, world_to_camera: bool = False) -> np.ndarray:
+    """Angles (degrees) between the viewing directions of consecutive ``(N, 3, 3)`` camera rotations: camera-to-world
+    (the optical axis is a column) or, with ``world_to_camera``, world-to-camera (a row, as COLMAP stores them). A
+    camera rolled about its own axis (a photo turned a quarter, or upside down) does not change it."""
+    rotations = np.asarray(rotations, dtype=np.float64)
+    axes = rotations[:, 2, :] if world_to_camera else rotations[:, :, 2]
+    cos = np.einsum("ni,ni->n", axes[1:], axes[:-1]) / (np.linalg.norm(axes[1:], axis=1) * np.linalg.norm(axes[:-1], axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def walk_jumps(rotations: np.ndarray, *, world_to_camera: bool = False, jump_deg: float = JUMP_DEG) -> list[int]:
+    """Indices ``i`` where the viewing direction of cameras ``i - 1 -> i`` of a walk (:func:`is_walk`) turns by more
+    than ``jump_deg`` (:func:`axis_steps_deg`; camera-to-world rotations unless ``world_to_camera``); none for cameras
+    that are no walk. A jump in a walk is almost always a reconstruction that folded look-alike views from different
+    sides; a camera that only rolls (a photo taken with the phone turned) is none."""
     if not is_walk(rotations):
         return []
-    steps = rotation_steps_deg(np.asarray(rotations, dtype=np.float64))
+    steps = axis_steps_deg(rotations, world_to_camera=world_to_camera)
     return [int(i) + 1 for i in np.flatnonzero(steps > jump_deg)]
 
 
@@ -683,7 +694,7 @@ def model_jumps(model, names: Sequence[str]) -> list[str]:
     """The photos of ``names`` (registered in ``model``, in file-name order) where a walk jumps (:func:`walk_jumps`)."""
     by_name = _posed(model)
     rotations = np.array([np.asarray(by_name[name].cam_from_world().rotation.matrix()) for name in names])
-    return [names[i] for i in walk_jumps(rotations)]
+    return [names[i] for i in walk_jumps(rotations, world_to_camera=True)]
 
 
 def jump_advice(jumps: Sequence[str], config: SfmConfig) -> str:
