@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 pytest.importorskip("pycolmap")
@@ -382,3 +383,65 @@ def test_one_shot_in_two_formats_is_refused(tmp_path: Path) -> None:
         "a.png": "a.png", "IMG_1.heic": "IMG_1.jpg", "b.HEIF": "b.jpg"}
     with pytest.raises(SceneError, match=r"IMG_1\.jpg and IMG_1\.HEIC would both be IMG_1\.jpg in the scene"):
         prepared_names([Path("IMG_1.jpg"), Path("IMG_1.HEIC")])
+
+
+def _colmap_project(scene: Path, out: Path, *, model_dir: str = "sparse/0", text: bool = False) -> Path:
+    """A COLMAP project (``images/`` beside ``sparse/0/``) made of a poses scene's images and model."""
+    import pycolmap
+    import shutil
+
+    shutil.copytree(scene / "images", out / "images")
+    (out / model_dir).mkdir(parents=True)
+    model = pycolmap.Reconstruction(str(scene / "colmap"))
+    (model.write_text if text else model.write_binary)(str(out / model_dir))
+    return out
+
+
+@pytest.mark.parametrize(("model_dir", "text"), [("sparse/0", False), ("sparse", True)])
+def test_a_colmap_project_is_read_as_it_is(solved, tmp_path: Path, model_dir: str, text: bool) -> None:
+    """images/ + sparse/0 (as COLMAP, 3DGS and Mip-NeRF 360 data come): the poses and intrinsics of the same model
+    as the nerfstudio scene nerfmeta poses wrote from it, and no structure from motion run again."""
+    from nerfmeta.data.sfm import is_photo_folder
+
+    out, _, _ = solved
+    project = _colmap_project(out, tmp_path / "project", model_dir=model_dir, text=text)
+    assert not is_photo_folder(project)
+    scene, reference = load_scene(project, normalize=False), load_scene(out, normalize=False)
+    assert scene.format == "colmap" and scene.image_names == reference.image_names
+    torch.testing.assert_close(scene.poses, reference.poses, rtol=0, atol=1e-9)
+    torch.testing.assert_close(scene.intrinsics, reference.intrinsics, rtol=0, atol=1e-9)
+    assert (scene.near, scene.far) == pytest.approx((reference.near, reference.far))
+    assert scene.splits == reference.splits and "sparse points" in scene.near_far_source
+
+
+def test_a_colmap_project_with_resized_images_scales_its_intrinsics(solved, tmp_path: Path) -> None:
+    out, _, _ = solved
+    project = _colmap_project(out, tmp_path / "project")
+    for path in (project / "images").iterdir():  # a dataset's images at half the size COLMAP saw
+        with Image.open(path) as image:
+            image.resize((image.width // 2, image.height // 2)).save(path)
+    scene, reference = load_scene(project, normalize=False), load_scene(out, normalize=False)
+    torch.testing.assert_close(scene.intrinsics, reference.intrinsics * 0.5, rtol=0.01, atol=0)
+    with Image.open(next((project / "images").iterdir())) as image:
+        other = image.resize((image.width, image.height // 3))
+    for path in (project / "images").iterdir():
+        other.save(path)
+    with pytest.raises(SceneError, match=r"sparse/0: the model's images are \d+x\d+ but the images are .*another aspect"):
+        load_scene(project)
+
+
+def test_a_damaged_colmap_model_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    project = tmp_path / "project"
+    (project / "sparse" / "0").mkdir(parents=True)
+    (project / "images").mkdir()
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (project / "sparse" / "0" / name).write_bytes(b"\x01\x00")
+    assert "cameras.bin: not a readable COLMAP model file (no record count in 2 bytes" in _fails(
+        ["inspect", str(project)], capsys)
+    (project / "sparse" / "0" / "cameras.bin").write_bytes((10**9).to_bytes(8, "little") + b"\x00" * 40)
+    assert "cameras.bin: not a readable COLMAP model file (1000000000 records in 48 bytes" in _fails(
+        ["inspect", str(project)], capsys)
+    (project / "sparse" / "0" / "cameras.bin").write_bytes((0).to_bytes(8, "little"))
+    (project / "sparse" / "0" / "images.bin").write_bytes((0).to_bytes(8, "little"))
+    (project / "sparse" / "0" / "points3D.bin").write_bytes((0).to_bytes(8, "little"))
+    assert "sparse/0: the COLMAP model poses no image" in _fails(["inspect", str(project)], capsys)

@@ -106,7 +106,14 @@ def _focal_from_angle(angle: Any, size: int, *, where: str) -> float:
 def load(path: Path, options: LoadOptions) -> Scene:
     """Read a nerfstudio / instant-ngp ``transforms.json`` scene (see the module docstring)."""
     file = path / FILE_NAME
-    doc = read_json(file)
+    return load_document(path, read_json(file), options, file=file)
+
+
+def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file: Path, scene_format: str = NAME,
+                  near_far_source: str = "from file") -> Scene:
+    """The scene of a ``transforms.json`` document ``doc`` whose ``file_path`` are relative to ``path`` (read from
+    ``file``, or made from another format's files, as :mod:`nerfmeta.data.colmap` does: ``file`` then names where
+    it came from in messages, ``scene_format`` the scene's format and ``near_far_source`` where its near/far came from)."""
     frames = doc.get("frames")
     if not isinstance(frames, list) or not frames:
         raise SceneError(f"{file}: 'frames' must be a non-empty list")
@@ -136,7 +143,6 @@ def load(path: Path, options: LoadOptions) -> Scene:
         if "near" not in doc or "far" not in doc:
             raise SceneError(f"{where}: give both near and far, or neither")
         near, far = near_far(doc["near"], doc["far"], where=where)
-        near_far_source = "from file"
     else:
         guess = near_far_from_cameras(poses_np)
         if guess is None:
@@ -160,7 +166,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
         splits=every_nth_splits(len(image_paths)),
         holdout=HOLDOUT_EVERY_TEXT,
         source=path,
-        format=NAME,
+        format=scene_format,
         options=options,
         downscale=views.factor,
         aabb=aabb,

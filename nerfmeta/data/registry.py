@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from nerfmeta.data import blender, llff, nerfstudio, npz
+from nerfmeta.data import blender, colmap, llff, nerfstudio, npz
 from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images, unread_images
 from nerfmeta.data.scene import Scene
@@ -23,7 +23,8 @@ __all__ = ["FORMATS", "LoadOptions", "SceneFormat", "detect_format", "load_scene
 
 POSE_TOOLS_HINT = (
     "'nerfmeta poses PHOTOS --out SCENE' computes them from the images (and 'nerfmeta fit PHOTOS' runs it for you), "
-    "as do COLMAP followed by LLFF's imgs2poses.py (poses_bounds.npy) and nerfstudio's ns-process-data (transforms.json)"
+    "as do COLMAP (its sparse/0/ beside images/ is read as it is), LLFF's imgs2poses.py (poses_bounds.npy) and "
+    "nerfstudio's ns-process-data (transforms.json)"
 )
 
 
@@ -42,7 +43,7 @@ class SceneFormat:
 
 
 FORMATS: tuple[SceneFormat, ...] = tuple(
-    SceneFormat(m.NAME, m.EXPECTS, m.detect, m.load) for m in (blender, nerfstudio, llff, npz)
+    SceneFormat(m.NAME, m.EXPECTS, m.detect, m.load) for m in (blender, nerfstudio, llff, colmap, npz)
 )
 
 

@@ -659,28 +659,41 @@ def _undistorted(model, images: Path, work: Path):
     return pycolmap.Reconstruction(out / "sparse"), out / "images"
 
 
+def point_depths(model, image) -> np.ndarray:
+    """(k,) depths along ``image``'s optical axis of the sparse points of ``model`` it observes."""
+    pose = image.cam_from_world()
+    points = np.array([model.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]).reshape(-1, 3)
+    return (points @ np.asarray(pose.rotation.matrix()).T + np.asarray(pose.translation))[:, 2]
+
+
+def _camera_keys(camera: PinholeCamera) -> dict:
+    """A camera's ``transforms.json`` keys (nerfstudio layout)."""
+    return {"camera_model": "OPENCV" if camera.distortion else "PINHOLE", "w": camera.width, "h": camera.height,
+            "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, **camera.distortion}
+
+
 def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
-    """The ``transforms.json`` document (nerfstudio layout) of a pinhole ``model``'s images ``names``."""
+    """The ``transforms.json`` document (nerfstudio layout) of ``model``'s images ``names`` and the first one's camera
+    (at the top level; a frame whose camera is another one carries its own keys)."""
     by_name = _posed(model)
-    first = by_name[names[0]]
-    cam = model.cameras[first.camera_id]
-    camera = camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height)
+    cameras = {cam_id: camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height)
+               for cam_id, cam in model.cameras.items()}
+    first = by_name[names[0]].camera_id
     frames, depths = [], []
     for name in names:
         image = by_name[name]
         pose = image.cam_from_world()
         x, y, z, w = pose.rotation.quat  # pycolmap keeps Eigen's (x, y, z, w) order
         frames.append({"file_path": f"{IMAGES}/{name}",
-                       "transform_matrix": opengl_camera_to_world((w, x, y, z), pose.translation).tolist()})
-        points = np.array([model.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]).reshape(-1, 3)
-        depths.append((points @ pose.rotation.matrix().T + pose.translation)[:, 2])
+                       "transform_matrix": opengl_camera_to_world((w, x, y, z), pose.translation).tolist(),
+                       **(_camera_keys(cameras[image.camera_id]) if image.camera_id != first else {})})
+        depths.append(point_depths(model, image))
     near, far = near_far_from_depths(depths)
     applied = np.eye(4)[:3]
     applied[:, :3] = WORLD_FROM_COLMAP
-    doc = {"camera_model": "OPENCV" if camera.distortion else "PINHOLE", "w": camera.width, "h": camera.height,
-           "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy, **camera.distortion,
-           "near": near, "far": far, "applied_transform": applied.tolist(), "frames": frames}
-    return doc, camera
+    doc = {**_camera_keys(cameras[first]), "near": near, "far": far, "applied_transform": applied.tolist(),
+           "frames": frames}
+    return doc, cameras[first]
 
 
 def folded_walk_note(views: Sequence[int]) -> str:
