@@ -401,7 +401,7 @@ def _colmap_project(scene: Path, out: Path, *, model_dir: str = "sparse/0", text
 def test_a_colmap_project_is_read_as_it_is(solved, tmp_path: Path, model_dir: str, text: bool) -> None:
     """images/ + sparse/0 (as COLMAP, 3DGS and Mip-NeRF 360 data come): the poses and intrinsics of the same model
     as the nerfstudio scene nerfmeta poses wrote from it, and no structure from motion run again."""
-    from nerfmeta.data.sfm import is_photo_folder
+    from nerfmeta.data.registry import is_photo_folder
 
     out, _, _ = solved
     project = _colmap_project(out, tmp_path / "project", model_dir=model_dir, text=text)

@@ -106,7 +106,8 @@ def poses_for_photos(scene: str, *, verbose: bool = False) -> str:
     """``scene`` unchanged, or for a folder of photos without poses (or a video: its frames, :func:`frames_of_video`)
     the cached SfM scene of them (computed with the default :class:`SfmConfig` when not cached yet; bars on stderr).
     The photos that did not register are named on stderr each time, from the cache too."""
-    from nerfmeta.data.sfm import REPORT, cache_root, cached_poses, is_photo_folder
+    from nerfmeta.data.registry import is_photo_folder
+    from nerfmeta.data.sfm import REPORT, cache_root, cached_poses
     from nerfmeta.data.video import is_video
 
     if is_video(scene):

@@ -96,7 +96,7 @@ def rescaled_to_images(doc: dict, height: int, width: int, *, where: str) -> dic
 def load(path: Path, options: LoadOptions) -> Scene:
     """Read a COLMAP project (see the module docstring)."""
     from nerfmeta.data import nerfstudio
-    from nerfmeta.data.sfm import _posed, scene_document
+    from nerfmeta.data.sfm import posed_images, scene_document
 
     folder = model_folder(path)
     if folder is None:
@@ -111,7 +111,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
     except Exception as err:  # pycolmap raises its own types for a damaged model
         first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
         raise SceneError(f"{folder}: not a readable COLMAP model ({first})") from err
-    names = sorted(_posed(model))
+    names = sorted(posed_images(model))
     if not names:
         raise SceneError(f"{folder}: the COLMAP model poses no image")
     doc, _ = scene_document(model, names)

@@ -19,7 +19,8 @@ from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images, unread_images
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError, SceneError
 
-__all__ = ["FORMATS", "LoadOptions", "SceneFormat", "detect_format", "load_scene", "parse_background"]
+__all__ = ["FORMATS", "LoadOptions", "SceneFormat", "detect_format", "is_photo_folder", "load_scene",
+           "parse_background"]
 
 POSE_TOOLS_HINT = (
     "'nerfmeta poses PHOTOS --out SCENE' computes them from the images (and 'nerfmeta fit PHOTOS' runs it for you), "
@@ -49,6 +50,14 @@ FORMATS: tuple[SceneFormat, ...] = tuple(
 
 def _supported() -> str:
     return "; ".join(f"{f.name}: {f.expects}" for f in FORMATS)
+
+
+def is_photo_folder(path: str | os.PathLike) -> bool:
+    """True for a folder of photos (directly in it or in its ``images/``) without any pose file a parser reads: what
+    ``nerfmeta poses`` (and ``nerfmeta fit`` on the way) turns into a scene."""
+    path = Path(path)
+    return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(
+        list_images(path) or list_images(path / "images"))
 
 
 def detect_format(path: str | os.PathLike) -> SceneFormat:

@@ -54,7 +54,6 @@ from PIL import Image
 
 from nerfmeta.config import bounded
 from nerfmeta.data.images import HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_images
-from nerfmeta.data.registry import FORMATS
 from nerfmeta.errors import SceneError
 from nerfmeta.io import write_json
 from nerfmeta.runfolder import run_folder
@@ -316,12 +315,6 @@ def list_photos(folder: str | os.PathLike) -> list[Path]:
     return list_images(folder) or list_images(folder / IMAGES)
 
 
-def is_photo_folder(path: str | os.PathLike) -> bool:
-    """True for a folder of photos without any pose file a scene parser reads."""
-    path = Path(path)
-    return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(list_photos(path))
-
-
 def check_photos(paths: Sequence[Path], folder: Path) -> tuple[tuple[int, int], frozenset[str]]:
     """``((height, width), turned)``: the size the photos share as shown (EXIF orientation applied; read from the
     headers) and the names of those shown the other way round (portrait among landscape, or the reverse).
@@ -459,7 +452,7 @@ class SfmResult:
                 "turned": list(self.turned)}
 
 
-def _posed(model) -> dict:
+def posed_images(model) -> dict:
     """The images of ``model`` that have a pose, by name (none for no model)."""
     return {} if model is None else {image.name: image for image in model.images.values() if image.has_pose}
 
@@ -509,7 +502,7 @@ def match_agreement(model, matches: VerifiedMatches, *, tol_px: float = AGREE_PX
     is never near 1; what it tells is which of several models of the same photos is the most consistent. A model
     mapped from neighbours' matches never saw the far pairs, and only a walk kept whole explains them.
     """
-    posed = _posed(model)
+    posed = posed_images(model)
     points: dict[str, np.ndarray] = {}
 
     def normalised(name: str) -> np.ndarray:
@@ -638,7 +631,7 @@ def best_draw(first, work: Path, images: Path, names: Sequence[str], every_pair:
     matches = read_verified_matches(every_pair)
     draws = []
     for model, (mapper, seed) in zip(models, rows):
-        posed = sorted(_posed(model))
+        posed = sorted(posed_images(model))
         draws.append({"mapper": mapper, "seed": seed, "registered": len(posed),
                       "jumps": len(model_jumps(model, posed)) if posed else 0,
                       "agreement": round(match_agreement(model, matches), 4) if posed else 0.0})
@@ -675,7 +668,7 @@ def _camera_keys(camera: PinholeCamera) -> dict:
 def scene_document(model, names: Sequence[str]) -> tuple[dict, PinholeCamera]:
     """The ``transforms.json`` document (nerfstudio layout) of ``model``'s images ``names`` and the first one's camera
     (at the top level; a frame whose camera is another one carries its own keys)."""
-    by_name = _posed(model)
+    by_name = posed_images(model)
     cameras = {cam_id: camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height)
                for cam_id, cam in model.cameras.items()}
     first = by_name[names[0]].camera_id
@@ -705,7 +698,7 @@ def folded_walk_note(views: Sequence[int]) -> str:
 
 def model_jumps(model, names: Sequence[str]) -> list[str]:
     """The photos of ``names`` (registered in ``model``, in file-name order) where a walk jumps (:func:`walk_jumps`)."""
-    by_name = _posed(model)
+    by_name = posed_images(model)
     rotations = np.array([np.asarray(by_name[name].cam_from_world().rotation.matrix()) for name in names])
     return [names[i] for i in walk_jumps(rotations, world_to_camera=True)]
 
@@ -782,7 +775,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         attempt = work / matcher
         attempt.mkdir()
         model = reconstruct(prepared, names, attempt, replace(config, matcher=matcher), progress, seconds)
-        registered = sorted(_posed(model))
+        registered = sorted(posed_images(model))
         if len(registered) < MIN_PHOTOS or len(registered) < config.min_registered * len(names) - 1e-9:
             raise _unregistered_error(folder, [own[n] for n in names if n not in set(registered)], len(names), config)
         jumps = model_jumps(model, registered)
@@ -794,7 +787,7 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
             again = reconstruct(prepared, names, retry, replace(config, matcher="sequential"), progress, seconds,
                                 features=attempt / "database.db")
             again, draws = best_draw(again, retry, prepared, names, attempt / "database.db", config, progress, seconds)
-            kept = sorted(_posed(again))
+            kept = sorted(posed_images(again))
             if len(kept) >= len(registered) and len(kept_jumps := model_jumps(again, kept)) < len(jumps):
                 model, registered, matcher, jumps = again, kept, "sequential", kept_jumps
             else:
