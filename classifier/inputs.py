@@ -94,8 +94,9 @@ def read_scene_views(
         if images:
             return read_image_views(images, size, max_pixels)
         if not any(path.iterdir()):
-            raise SceneError(f"{path}: folder is empty; expected a scene, a folder of PNG/JPEG images or an image file")
+            raise SceneError(f"{path}: folder is empty; expected a scene, a folder of images or an image file")
     if path.is_file() and not any(fmt.detect(path) for fmt in FORMATS):
-        raise SceneError(f"{path}: not a scene or an image (expected a scene folder, an .npz, or a .png/.jpg/.jpeg file)")
+        raise SceneError(f"{path}: not a scene or an image (expected a scene folder, an .npz, or an image file: "
+                         f"{', '.join(IMAGE_SUFFIXES)})")
     # a .npz scene, or anything else: the loader reads it or raises its own one-line error
     return to_input_size(scene_premultiplied(load_scene(path, background=background, max_pixels=max_pixels)), size)

@@ -137,3 +137,14 @@ def test_a_file_ffmpeg_cannot_read_is_one_line_and_nothing_is_cached(tmp_path: P
     assert not any((tmp_path / "cache" / "frames").glob("*/frame_*.jpg"))
     assert main(["poses", str(bad), "--out", str(tmp_path / "scene"), "--video-frames", "2"]) == 2
     assert "--video-frames 2: must be at least 3" in capsys.readouterr().err
+
+
+def test_classify_and_inspect_take_a_video(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("NERFMETA_CACHE", str(tmp_path / "cache"))
+    video = write_video(tmp_path / "walk.mp4", np.stack([_checker()] * 8))
+    assert main(["classify", str(video), "--zoo", str(Path(__file__).resolve().parents[1] / "model_zoo")]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["views"] == 8 and "8 of its 8 frames kept" in out.err
+    assert main(["inspect", str(video)]) == 2
+    assert f"'nerfmeta poses {video} --out SCENE' makes a scene of its frames" in capsys.readouterr().err

@@ -7,6 +7,7 @@ import json
 import sys
 
 from classifier.config import SCORES
+from nerfmeta.data.video import is_video
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -16,8 +17,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Classify SCENE from all of its views (every split): softmax per view, averaged over the views, "
             "plus the unknown-category decision calibrated when the classifier was trained. SCENE is a scene "
-            "folder in any supported format, a folder of PNG, JPEG or HEIC images, or one image; any size, RGB or "
-            "RGBA (composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
+            "folder in any supported format, a folder of PNG, JPEG or HEIC images, one image, or a video (its "
+            "frames as 'fit VIDEO' keeps them); any size, RGB or RGBA (composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
             '{"category", "confidence", "unknown", "probabilities", "views", "score"} on stdout.'
         ),
     )
@@ -46,7 +47,12 @@ def run(args: argparse.Namespace) -> int:
     if args.score is not None:
         classifier = classifier.with_score(args.score)
     meta = classifier.meta
-    views = read_scene_views(args.scene, size=meta.input_size, background=meta.background)
+    scene = args.scene
+    if is_video(scene):  # a phone video: its frames, as 'fit VIDEO' takes them (cached)
+        from nerfmeta.commands.poses import frames_of_video
+
+        scene = frames_of_video(scene)
+    views = read_scene_views(scene, size=meta.input_size, background=meta.background)
     doc = classify_views(classifier, views).to_json()
     if json_out is not None:
         write_output_json(json_out, doc, option="--json-out")

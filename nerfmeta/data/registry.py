@@ -17,6 +17,7 @@ from nerfmeta.data import blender, colmap, llff, nerfstudio, npz
 from nerfmeta.data.common import LoadOptions
 from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images, unread_images
 from nerfmeta.data.scene import Scene
+from nerfmeta.data.video import VIDEO_SUFFIXES
 from nerfmeta.errors import ConfigError, SceneError
 
 __all__ = ["FORMATS", "LoadOptions", "SceneFormat", "detect_format", "is_photo_folder", "load_scene",
@@ -85,6 +86,9 @@ def detect_format(path: str | os.PathLike) -> SceneFormat:
             found = ", ".join(f"{n} {suffix}" for suffix, n in other.items())
             raise SceneError(f"{path}: holds images nerfmeta does not read ({found} files); it reads PNG, JPEG and "
                              "HEIC/HEIF photos: convert them to one of those (e.g. JPEG)")
+    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
+        raise SceneError(f"{path}: a video, not a scene: 'nerfmeta poses {path} --out SCENE' makes a scene of its frames "
+                         "('nerfmeta fit' and 'nerfmeta classify' take the video as it is)")
     raise SceneError(f"{path}: unknown scene format (supported formats: {_supported()})")
 
 
