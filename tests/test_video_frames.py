@@ -75,6 +75,20 @@ def test_the_sharpest_frame_of_each_stretch_is_kept(tmp_path: Path) -> None:
     assert json.loads((out / "frames.json").read_text())["kept"] == report["kept"]
 
 
+def test_a_header_without_duration_has_its_frames_counted(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import nerfmeta.data.video as video_mod
+
+    frames = np.stack([_checker()] * 12)
+    frames[:, :4, :4] = np.arange(12, dtype=np.uint8)[:, None, None, None] * 20
+    video = write_video(tmp_path / "stream.mkv", frames)
+    real = video_mod.probe
+    monkeypatch.setattr(video_mod, "probe", lambda path: {**real(path), "duration": 0.0})
+    out = tmp_path / "frames"
+    out.mkdir()
+    report = extract_frames(video, out, FrameConfig(frames=4))
+    assert len(report["kept"]) == 4 and [k["frame"] // 3 for k in report["kept"]] == [0, 1, 2, 3]
+
+
 def test_a_rotated_phone_video_gives_upright_frames_within_max_side(tmp_path: Path) -> None:
     stored = np.zeros((6, 64, 96, 3), np.uint8)
     stored[:, :, :48, 0] = 255  # the stored left half red

@@ -102,6 +102,11 @@ def scaled_size(width: int, height: int, max_side: int) -> tuple[int, int]:
     return max(2, 2 * round(width * scale / 2)), max(2, 2 * round(height * scale / 2))
 
 
+def _short(err: BaseException) -> str:
+    """The last line of an error (ffmpeg's reason comes last), cut to 200 characters."""
+    return (str(err).strip().splitlines() or [type(err).__name__])[-1][:200]
+
+
 def _ffmpeg():
     try:
         import imageio_ffmpeg
@@ -124,8 +129,7 @@ def probe(video: Path) -> dict:
         meta = next(reader)
         reader.close()
     except (RuntimeError, OSError, StopIteration, ValueError, IndexError, AttributeError) as err:
-        first = (str(err).strip().splitlines() or [type(err).__name__])[-1][:200]
-        raise SceneError(f"{video}: not a video ffmpeg can read ({first})") from err
+        raise SceneError(f"{video}: not a video ffmpeg can read ({_short(err)})") from err
     size = meta.get("size")
     if not size or min(size) < 1:
         raise SceneError(f"{video}: has no video stream")
@@ -148,9 +152,15 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
     meta = probe(video)
     width, height = meta["size"]
     out_w, out_h = scaled_size(width, height, config.max_side)
-    expected = max(1, round(meta["duration"] * meta["fps"]))
-    windows = frame_windows(expected, config.frames)
     ffmpeg = _ffmpeg()
+    expected = round(meta["duration"] * meta["fps"])
+    if expected < MIN_FRAMES:  # a header without duration or rate (some streams): count the frames, one more pass
+        try:
+            expected = ffmpeg.count_frames_and_secs(str(video))[0]
+        except (RuntimeError, OSError, ValueError) as err:
+            raise SceneError(f"{video}: cannot count its frames ({_short(err)})") from err
+    expected = max(1, expected)
+    windows = frame_windows(expected, config.frames)
     params = ["-vf", f"scale={out_w}:{out_h}:flags=area"] if (out_w, out_h) != (width, height) else None
     t0 = time.perf_counter()
     kept: list[dict] = []
@@ -184,8 +194,7 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
             total = index + 1
         flush()
     except (RuntimeError, OSError) as err:
-        first = (str(err).strip().splitlines() or [type(err).__name__])[-1][:200]
-        raise SceneError(f"{video}: decoding failed after {total} frames ({first})") from err
+        raise SceneError(f"{video}: decoding failed after {total} frames ({_short(err)})") from err
     finally:
         reader.close()
     progress("frames", len(kept), len(kept))
