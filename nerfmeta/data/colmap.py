@@ -8,9 +8,10 @@ The model is read with pycolmap (the ``poses`` extra) and turned into the nerfst
 :func:`nerfmeta.data.sfm.scene_document` writes for ``nerfmeta poses`` (OpenGL camera-to-world, the world turned as
 nerfstudio's ``colmap_to_json`` turns it, near/far from the sparse points each camera sees), which
 :func:`nerfmeta.data.nerfstudio.load_document` reads: so a capture posed by COLMAP elsewhere is fitted as it
-is, not posed again. Only the model's registered images are views, in name order. Lens distortion is ignored with a
-warning, as for nerfstudio scenes (COLMAP's ``image_undistorter``, or 3DGS's ``convert.py``, writes undistorted
-images with a PINHOLE model). A scene with ``poses_bounds.npy`` too (Mip-NeRF 360's) is read as LLFF.
+is, not posed again. Only the model's registered images are views, in name order. Lens distortion (``SIMPLE_RADIAL``,
+``RADIAL``, ``OPENCV``) is removed on load as for nerfstudio scenes (:mod:`nerfmeta.data.distortion`); COLMAP's
+``image_undistorter`` and 3DGS's ``convert.py`` write undistorted images with a PINHOLE model, which need nothing. A
+scene with ``poses_bounds.npy`` too (Mip-NeRF 360's) is read as LLFF.
 
 Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
 """

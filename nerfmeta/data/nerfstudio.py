@@ -4,8 +4,8 @@ Intrinsics come from ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``, given at 
 per frame (a frame's values override the top level). Without ``fl_x``, ``camera_angle_x`` gives
 ``fl_x = 0.5 * w / tan(camera_angle_x / 2)``; ``fl_y`` defaults to ``camera_angle_y`` the same way,
 then to ``fl_x``; ``cx``, ``cy`` default to the image centre and ``w``, ``h`` to the image size (when
-given they must match it). Lens distortion coefficients are ignored (a warning is logged); fisheye
-and equirectangular cameras are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
+given they must match it). Lens distortion (``k1 k2 k3 p1 p2``, OpenCV's model) is removed on load: the images
+are resampled into pinhole ones (:mod:`nerfmeta.data.distortion`); fisheye and equirectangular cameras are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
 
 Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
 
@@ -45,6 +45,7 @@ from nerfmeta.data.common import (
     read_views,
     scale_intrinsics,
 )
+from nerfmeta.data.distortion import COEFFICIENTS, undistort_views_
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import SceneError
 
@@ -54,7 +55,6 @@ NAME = "nerfstudio"
 EXPECTS = "transforms.json with fl_x/fl_y/cx/cy/w/h (or camera_angle_x) and frames"
 FILE_NAME = "transforms.json"
 UNSUPPORTED_CAMERAS = ("OPENCV_FISHEYE", "FISHEYE624", "EQUIRECTANGULAR")
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def detect(path: Path) -> bool:
@@ -135,8 +135,10 @@ def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file
         [_frame_intrinsics(f, doc, height, width, where=f"{file}: frame {k}") for k, f in enumerate(frames)],
         dtype=torch.float64,
     )
-    if any(_get(f, doc, key) not in (None, 0, 0.0) for f in frames for key in DISTORTION_KEYS):
-        log.warning("%s: lens distortion coefficients are ignored (images are treated as pinhole)", file)
+    coeffs = torch.tensor([[finite_number(_get(f, doc, key) or 0.0, where=f"{file}: frame {k}: {key}")
+                            for key in COEFFICIENTS] for k, f in enumerate(frames)], dtype=torch.float64)
+    if any(_get(f, doc, "k4") not in (None, 0, 0.0) for f in frames):
+        log.warning("%s: the fisheye coefficient k4 is ignored (k1, k2, k3, p1, p2 are removed on load)", file)
 
     where = str(file)
     if "near" in doc or "far" in doc:
@@ -157,6 +159,9 @@ def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file
 
     views = read_views(image_paths, options)
     intrinsics = scale_intrinsics(intrinsics, views.width / width, views.height / height)
+    if bool((coeffs != 0).any()):  # resampled into pinhole images: every ray cast is a straight pinhole ray
+        views = undistort_views_(views, intrinsics, coeffs)
+        log.info("%s: lens distortion removed on load (%d views)", file, int((coeffs != 0).any(dim=1).sum()))
     return build_scene(
         views=views,
         poses=poses_np,
