@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 from nerfmeta.data.sfm import (  # noqa: E402
     SfmConfig,
     check_photos,
+    prepared_names,
     list_photos,
     map_matches,
     match_agreement,
@@ -63,12 +64,14 @@ def main() -> int:
         print(refusal, file=sys.stderr)
         return 2
     paths = list_photos(args.photos)
-    height, width = check_photos(paths, args.photos)
+    (height, width), turned = check_photos(paths, args.photos)
     photos = args.work / "photos"
     photos.mkdir(parents=True)
-    names = [p.name for p in paths]
+    scene_names = prepared_names(paths)
+    names = [scene_names[p.name] for p in paths]
     for path in paths:
-        prepare_photo(path, photos / path.name, prepared_size(height, width, config.max_side))
+        prepare_photo(path, photos / scene_names[path.name], prepared_size(height, width, config.max_side),
+                      turn=path.name in turned)
     quiet, seconds = (lambda *_: None), {}
     every, neighbours = args.work / "exhaustive", args.work / "sequential"
     every.mkdir()
