@@ -141,8 +141,9 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
     """Write the sharpest frame of each of ``config.frames`` equal stretches of ``video`` into the existing folder
     ``out`` as ``frame_NNNNNN.jpg`` (index in the video); returns the report (also the content of ``frames.json``).
 
-    The stretches are cut on the frame count the header gives (duration x frame rate); frames past it join the
-    last stretch, and a video that ends early leaves its last stretches empty.
+    The stretches are cut on the frame count the header gives (duration x frame rate; counted by ffmpeg when the
+    header has neither); frames past it join the last stretch, and a video that ends early leaves its last
+    stretches empty.
 
     Raises:
         SceneError: unreadable, or fewer than :data:`MIN_FRAMES` frames.
