@@ -18,7 +18,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "Classify SCENE from all of its views (every split): softmax per view, averaged over the views, "
             "plus the unknown-category decision calibrated when the classifier was trained. SCENE is a scene "
             "folder in any supported format, a folder of PNG, JPEG or HEIC images, one image, or a video (its "
-            "frames as 'fit VIDEO' keeps them); any size, RGB or RGBA (composited on the classifier's training background), 8- or 16-bit PNG, JPEG. Prints "
+            "frames as 'fit VIDEO' keeps them); any size, RGB or RGBA (composited on the classifier's training "
+            "background), 8- or 16-bit PNG, JPEG. Prints "
             '{"category", "confidence", "unknown", "probabilities", "views", "score"} on stdout.'
         ),
     )

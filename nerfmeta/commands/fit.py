@@ -55,8 +55,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("scene", metavar="SCENE", help="scene folder (or .npz file), or a folder of photos without poses, "
-                   f"or a video (its sharpest frame in each of {FrameConfig.frames} equal stretches); structure from motion is run first "
-                   "and its result cached; see 'nerfmeta poses'")
+                   f"or a video (its sharpest frame in each of {FrameConfig.frames} equal stretches); structure from "
+                   "motion is run first and its result cached; see 'nerfmeta poses'")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write (must be new or empty)")
     options.add_config_options(
         p, RunConfig, only=RUN_OPTIONS,

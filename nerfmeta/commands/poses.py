@@ -35,7 +35,8 @@ class PhaseBars:
         if phase != self.phase:
             self.close()
             self.phase = phase
-            unit = "photo" if phase == "photos" or phase.startswith("mapping") else "frame" if phase == "frames" else "step"
+            unit = ("photo" if phase == "photos" or phase.startswith("mapping") else
+                    "frame" if phase == "frames" else "step")
             self.bar = tqdm(total=total, desc=PHASES.get(phase, phase), unit=unit, file=sys.stderr, dynamic_ncols=True)
         self.bar.n = done
         self.bar.refresh()

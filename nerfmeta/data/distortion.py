@@ -47,7 +47,8 @@ def source_grid(height: int, width: int, intrinsics: torch.Tensor, coeffs: torch
 
 
 def undistort_image(image: torch.Tensor, intrinsics: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
-    """The pinhole image (same size and intrinsics) of an ``(h, w)`` or ``(h, w, c)`` photo with distortion ``coeffs``."""
+    """The pinhole image (same size and intrinsics) of an ``(h, w)`` or ``(h, w, c)`` photo with distortion
+    ``coeffs``."""
     planar = image.dim() == 2
     chw = (image.unsqueeze(0) if planar else image.permute(2, 0, 1)).unsqueeze(0)
     grid = source_grid(image.shape[0], image.shape[1], intrinsics, coeffs).to(image.dtype)

@@ -4,8 +4,9 @@ Intrinsics come from ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``, given at 
 per frame (a frame's values override the top level). Without ``fl_x``, ``camera_angle_x`` gives
 ``fl_x = 0.5 * w / tan(camera_angle_x / 2)``; ``fl_y`` defaults to ``camera_angle_y`` the same way,
 then to ``fl_x``; ``cx``, ``cy`` default to the image centre and ``w``, ``h`` to the image size (when
-given they must match it). Lens distortion (``k1 k2 k3 p1 p2``, OpenCV's model) is removed on load: the images
-are resampled into pinhole ones (:mod:`nerfmeta.data.distortion`); fisheye and equirectangular cameras are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
+given they must match it). Lens distortion (``k1 k2 k3 p1 p2``, OpenCV's model) is removed on load: the
+images are resampled into pinhole ones (:mod:`nerfmeta.data.distortion`); fisheye and equirectangular cameras
+are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
 
 Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
 
@@ -113,7 +114,8 @@ def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file
                   near_far_source: str = "from file") -> Scene:
     """The scene of a ``transforms.json`` document ``doc`` whose ``file_path`` are relative to ``path`` (read from
     ``file``, or made from another format's files, as :mod:`nerfmeta.data.colmap` does: ``file`` then names where
-    it came from in messages, ``scene_format`` the scene's format and ``near_far_source`` where its near/far came from)."""
+    it came from in messages, ``scene_format`` the scene's format and ``near_far_source`` where its near/far came
+    from)."""
     frames = doc.get("frames")
     if not isinstance(frames, list) or not frames:
         raise SceneError(f"{file}: 'frames' must be a non-empty list")

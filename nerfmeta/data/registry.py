@@ -87,8 +87,8 @@ def detect_format(path: str | os.PathLike) -> SceneFormat:
             raise SceneError(f"{path}: holds images nerfmeta does not read ({found} files); it reads PNG, JPEG and "
                              "HEIC/HEIF photos: convert them to one of those (e.g. JPEG)")
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
-        raise SceneError(f"{path}: a video, not a scene: 'nerfmeta poses {path} --out SCENE' makes a scene of its frames "
-                         "('nerfmeta fit' and 'nerfmeta classify' take the video as it is)")
+        raise SceneError(f"{path}: a video, not a scene: 'nerfmeta poses {path} --out SCENE' makes a scene of its "
+                         "frames ('nerfmeta fit' and 'nerfmeta classify' take the video as it is)")
     raise SceneError(f"{path}: unknown scene format (supported formats: {_supported()})")
 
 

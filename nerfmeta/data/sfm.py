@@ -258,7 +258,8 @@ def axis_steps_deg(rotations: np.ndarray, *, world_to_camera: bool = False) -> n
     camera rolled about its own axis (a photo turned a quarter, or upside down) does not change it."""
     rotations = np.asarray(rotations, dtype=np.float64)
     axes = rotations[:, 2, :] if world_to_camera else rotations[:, :, 2]
-    cos = np.einsum("ni,ni->n", axes[1:], axes[:-1]) / (np.linalg.norm(axes[1:], axis=1) * np.linalg.norm(axes[:-1], axis=1))
+    norms = np.linalg.norm(axes, axis=1)
+    cos = np.einsum("ni,ni->n", axes[1:], axes[:-1]) / (norms[1:] * norms[:-1])
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
@@ -348,7 +349,8 @@ def prepared_names(paths: Sequence[Path]) -> dict[str, str]:
     HEIC/HEIF photo (COLMAP reads no HEIF).
 
     Raises:
-        SceneError: two photos would get one name (``IMG_1.HEIC`` beside ``IMG_1.jpg``: the same shot twice, at a guess).
+        SceneError: two photos would get one name (``IMG_1.HEIC`` beside ``IMG_1.jpg``: the same shot twice, at a
+            guess).
     """
     names: dict[str, str] = {}
     taken: dict[str, str] = {}
