@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
@@ -63,3 +67,40 @@ def test_fit_limits_by_default_and_a_downscale_given_is_the_one_used(tiny_scene,
         assert json.loads((out / "summary.json").read_text())["resolution"] == [size, size]
     # a run saved before the limit existed keeps reading its images whole
     assert RunConfig.from_json({"scene": "s"}).max_side == 0
+
+
+def _nerfstudio_scene(folder: Path, size: tuple[int, int], copies: dict[int, int]) -> None:
+    """A 4-view nerfstudio scene of grey images at ``size`` (h, w), and ``images_N/`` copies of value ``copies[N]``
+    (a value the full-size images do not have, to tell which folder was read)."""
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for k in range(4):
+        name = f"frame_{k:05d}.png"
+        Image.fromarray(np.full((*size, 3), 100, np.uint8)).save(folder / "images" / name)
+        for n, value in copies.items():
+            (folder / f"images_{n}").mkdir(exist_ok=True)
+            Image.fromarray(np.full((size[0] // n, size[1] // n, 3), value, np.uint8)).save(folder / f"images_{n}" / name)
+        a = 2 * math.pi * k / 4
+        pose = [[-math.sin(a), 0, math.cos(a), 4 * math.cos(a)], [math.cos(a), 0, math.sin(a), 4 * math.sin(a)],
+                [0, 1, 0, 0], [0, 0, 0, 1]]
+        frames.append({"file_path": f"images/{name}", "transform_matrix": pose})
+    doc = {"fl_x": 50.0, "fl_y": 50.0, "cx": size[1] / 2, "cy": size[0] / 2, "near": 1.0, "far": 8.0, "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(doc))
+
+
+def test_nerfstudio_reduced_copies_are_read_when_the_factor_matches(tmp_path: Path) -> None:
+    """ns-process-data writes images_2/4/8 beside images/: a fit at 1/4 decodes the quarter-size copies."""
+    _nerfstudio_scene(tmp_path / "s", (64, 96), {2: 20, 4: 40})
+    full = load_scene(tmp_path / "s", normalize=False)
+    quarter = load_scene(tmp_path / "s", normalize=False, max_side=24)  # 96 -> 24: a factor of 4
+    assert (quarter.height, quarter.width, quarter.downscale) == (16, 24, 4.0)
+    assert float(quarter.images.mean()) == pytest.approx(40 / 255, abs=1e-6)  # from images_4/
+    assert quarter.image_names == full.image_names  # named as in transforms.json (--drop-views keeps working)
+    torch.testing.assert_close(quarter.intrinsics, full.intrinsics / 4)
+    given = load_scene(tmp_path / "s", normalize=False, downscale=2)
+    assert float(given.images.mean()) == pytest.approx(20 / 255, abs=1e-6) and given.downscale == 2.0
+    eighth = load_scene(tmp_path / "s", normalize=False, downscale=8)  # no images_8/: images/ reduced on load
+    assert float(eighth.images.mean()) == pytest.approx(100 / 255, abs=1e-6) and eighth.width == 12
+    (tmp_path / "s" / "images_4" / "frame_00003.png").unlink()  # an incomplete copy is passed over
+    assert float(load_scene(tmp_path / "s", normalize=False, max_side=24).images.mean()) == pytest.approx(100 / 255,
+                                                                                                        abs=1e-6)

@@ -8,6 +8,10 @@ given they must match it). Lens distortion (``k1 k2 k3 p1 p2``, OpenCV's model) 
 images are resampled into pinhole ones (:mod:`nerfmeta.data.distortion`); fisheye and equirectangular cameras
 are refused. Poses are OpenGL camera-to-world ``transform_matrix``.
 
+Images read at a reduced size (``--downscale``, ``--max-side``) by a whole factor N come from ``images_N/`` when
+it holds a copy of every ``images/`` file at that size, as ``ns-process-data`` writes them (decoding a quarter-size
+copy instead of a 12-megapixel photo); otherwise ``images/`` is reduced on load.
+
 Splits: every 8th view (0, 8, 16, ...) is held out as the test split.
 
 ``near``/``far``: the top-level keys when present. Otherwise a heuristic (see
@@ -45,8 +49,10 @@ from nerfmeta.data.common import (
     read_json,
     read_views,
     scale_intrinsics,
+    side_factor,
 )
 from nerfmeta.data.distortion import COEFFICIENTS, undistort_views_
+from nerfmeta.data.images import downscaled_size, image_shape
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import SceneError
 
@@ -104,6 +110,24 @@ def _focal_from_angle(angle: Any, size: int, *, where: str) -> float:
     return 0.5 * size / math.tan(0.5 * value)
 
 
+def reduced_copies(path: Path, image_paths: list[Path], factor: float, size: tuple[int, int]) -> list[Path] | None:
+    """The ``images_N/`` copies of ``image_paths`` (``images/...`` under ``path``) for the whole-number ``factor`` N,
+    as nerfstudio's ``ns-process-data`` writes ``images_2/``, ``images_4/`` and ``images_8/`` beside ``images/``:
+    None unless every one exists and the first is ``size`` = (height, width) reduced by N (to a pixel)."""
+    if factor <= 1 or not float(factor).is_integer():
+        return None
+    copies = []
+    for image in image_paths:
+        parts = image.relative_to(path).parts
+        if len(parts) < 2 or parts[0] != "images":
+            return None
+        copies.append(path.joinpath(f"images_{int(factor)}", *parts[1:]))
+        if not copies[-1].is_file():
+            return None
+    want, got = downscaled_size(*size, factor), image_shape(copies[0])
+    return copies if abs(want[0] - got[0]) <= 1 and abs(want[1] - got[1]) <= 1 else None
+
+
 def load(path: Path, options: LoadOptions) -> Scene:
     """Read a nerfstudio / instant-ngp ``transforms.json`` scene (see the module docstring)."""
     file = path / FILE_NAME
@@ -159,7 +183,9 @@ def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file
     aabb = parse_aabb(doc["aabb"], where=where) if "aabb" in doc else None
     category = parse_category(doc.get("category"), where=where)
 
-    views = read_views(image_paths, options)
+    factor = side_factor(height, width, options.downscale, options.max_side)
+    copies = reduced_copies(path, image_paths, factor, (height, width))
+    views = read_views(image_paths if copies is None else copies, options, downscale=None if copies is None else 1.0)
     intrinsics = scale_intrinsics(intrinsics, views.width / width, views.height / height)
     if bool((coeffs != 0).any()):  # resampled into pinhole images: every ray cast is a straight pinhole ray
         views = undistort_views_(views, intrinsics, coeffs)
@@ -175,7 +201,7 @@ def load_document(path: Path, doc: dict[str, Any], options: LoadOptions, *, file
         source=path,
         format=scene_format,
         options=options,
-        downscale=views.factor,
+        downscale=views.factor if copies is None else factor,
         aabb=aabb,
         category=category,
         image_names=[p.relative_to(path).as_posix() for p in image_paths],
