@@ -445,3 +445,32 @@ def test_a_damaged_colmap_model_is_one_line(tmp_path: Path, capsys: pytest.Captu
     (project / "sparse" / "0" / "images.bin").write_bytes((0).to_bytes(8, "little"))
     (project / "sparse" / "0" / "points3D.bin").write_bytes((0).to_bytes(8, "little"))
     assert "sparse/0: the COLMAP model poses no image" in _fails(["inspect", str(project)], capsys)
+
+
+def test_prepared_copies_keep_the_exif_focal_length_colmap_starts_from(arc, tmp_path: Path) -> None:
+    """A phone photo's EXIF gives COLMAP its focal-length prior; a copy resized for SfM must keep it (and say it
+    is upright, its pixels being turned already)."""
+    import pycolmap
+
+    folder, _ = arc
+    photos, prepared = tmp_path / "photos", tmp_path / "prepared"
+    photos.mkdir()
+    prepared.mkdir()
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110], exif[0x0112] = "Phone", "Model 1", 6
+    exif.get_ifd(0x8769)[0xA405] = 29  # 35 mm equivalent focal length (the arc was rendered with 0.8 x the width)
+    for path in sorted(folder.glob("view_00[0-2].png")):
+        stored = np.ascontiguousarray(np.rot90(np.asarray(Image.open(path).convert("RGB")), k=1))
+        Image.fromarray(stored).save(photos / f"{path.stem}.jpg", exif=exif.tobytes(), quality=95)
+        prepare_photo(photos / f"{path.stem}.jpg", prepared / f"{path.stem}.jpg", (HEIGHT // 2, WIDTH // 2))
+    copy = Image.open(prepared / "view_000.jpg").getexif()
+    assert copy[0x0112] == 1 and copy[0x0110] == "Model 1" and copy.get_ifd(0x8769)[0xA405] == 29
+    pycolmap.extract_features(tmp_path / "db.db", prepared, camera_mode=pycolmap.CameraMode.SINGLE,
+                              device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(tmp_path / "db.db")
+    try:
+        camera = db.read_all_cameras()[0]
+    finally:
+        db.close()
+    diagonal = np.hypot(WIDTH // 2, HEIGHT // 2)  # COLMAP scales the 35 mm figure by the 43.27 mm film diagonal
+    assert camera.has_prior_focal_length and camera.params[0] == pytest.approx(29 / np.hypot(36, 24) * diagonal, rel=0.01)

@@ -392,10 +392,29 @@ def prepare_photo(source: Path, dest: Path, size: tuple[int, int], *, turn: bool
     image = Image.fromarray(array)
     if image.size != (size[1], size[0]):
         image = image.resize((size[1], size[0]), Image.Resampling.BOX)
+    exif = _exif_as_shown(source)
+    extra = {} if exif is None else {"exif": exif}
     if dest.suffix.lower() in (".jpg", ".jpeg"):
-        image.save(dest, quality=95)
+        image.save(dest, quality=95, **extra)
     else:
-        image.save(dest)
+        image.save(dest, **extra)
+
+
+def _exif_as_shown(path: Path) -> bytes | None:
+    """The EXIF block of ``path`` with its orientation set to 1 (the copy's pixels are turned already), for the
+    prepared copy: COLMAP takes its focal-length prior from the camera's EXIF (focal length, 35 mm equivalent, make
+    and model), which a bare re-encoded copy would lose. None for a file without one (or a damaged one)."""
+    try:
+        with Image.open(path) as image:
+            if image.format == "PNG" and "exif" not in image.info:
+                return None  # (getexif would decode a whole PNG to look behind its pixels)
+            exif = image.getexif()
+            if not len(exif):
+                return None
+            exif[0x0112] = 1
+            return exif.tobytes()
+    except Exception:  # a damaged EXIF block: the copy goes without it, as before
+        return None
 
 
 def _stored_as_shown(path: Path) -> bool:
