@@ -474,3 +474,32 @@ def test_prepared_copies_keep_the_exif_focal_length_colmap_starts_from(arc, tmp_
         db.close()
     diagonal = np.hypot(WIDTH // 2, HEIGHT // 2)  # COLMAP scales the 35 mm figure by the 43.27 mm film diagonal
     assert camera.has_prior_focal_length and camera.params[0] == pytest.approx(29 / np.hypot(36, 24) * diagonal, rel=0.01)
+
+
+def test_a_phone_that_switched_lenses_gets_a_camera_per_lens(tmp_path: Path) -> None:
+    """Every photo's EXIF gives its focal length: one camera per lens (COLMAP's AUTO mode), each posed with its own
+    focal length; without EXIF the photos share one camera (AUTO would give each its own)."""
+    from nerfmeta.data.sfm import has_exif_focal
+
+    poses = sfm_scenes.ring_poses(12, turn=0.5)
+    wide, tele = sfm_scenes.render(poses, 0.7 * WIDTH, HEIGHT, WIDTH), sfm_scenes.render(poses, 1.0 * WIDTH, HEIGHT, WIDTH)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(12):
+        lens = "tele" if k % 3 == 2 else "wide"
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110] = "Phone", "Model 1"
+        exif.get_ifd(0x8769)[0xA405] = 36 if lens == "tele" else 25  # 35 mm equivalents of the two lenses
+        Image.fromarray((tele if lens == "tele" else wide)[k]).save(photos / f"view_{k:03d}.jpg", exif=exif.tobytes(),
+                                                                     quality=95)
+    assert has_exif_focal(photos / "view_000.jpg")
+    Image.fromarray(wide[0]).save(tmp_path / "bare.jpg")
+    assert not has_exif_focal(tmp_path / "bare.jpg")  # (a folder with such photos keeps one camera for all)
+    result = compute_poses(photos, tmp_path / "scene", SfmConfig(threads=1))
+    assert len(result.registered) == 12
+    scene = load_scene(tmp_path / "scene", normalize=False)
+    focal = scene.intrinsics[:, 0] / scene.width
+    for k in range(12):
+        assert float(focal[k]) == pytest.approx(1.0 if k % 3 == 2 else 0.7, rel=0.02)
+    rotation_deg, centre = sfm_scenes.pose_errors(scene.poses.numpy(), poses)
+    assert rotation_deg.max() < 1.0

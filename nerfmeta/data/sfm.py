@@ -41,6 +41,7 @@ import hashlib
 import json
 import logging
 import math
+import numbers
 import os
 import shutil
 import tempfile
@@ -104,7 +105,8 @@ class SfmConfig:
     square tiles) those far pairs match look-alike views from other sides and fold the reconstruction; the neighbours
     alone keep a video's walk whole."""
     camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
-    """COLMAP camera model shared by all photos; a model with distortion is undistorted to PINHOLE images."""
+    """COLMAP camera model of the photos (one camera for all, or one per lens when every photo's EXIF gives its focal
+    length: :func:`has_exif_focal`); a model with distortion is undistorted to PINHOLE images."""
     max_features: int = bounded(8192, low=64)
     """Most SIFT features per image."""
     min_registered: float = bounded(0.8, low=0, high=1, low_open=True)
@@ -417,6 +419,22 @@ def _exif_as_shown(path: Path) -> bytes | None:
         return None
 
 
+def has_exif_focal(path: Path) -> bool:
+    """True when the photo's EXIF gives a focal length (in mm, or its 35 mm equivalent).
+
+    Photos that all have one are given to COLMAP with one camera per distinct size and EXIF focal length (its AUTO
+    mode: a phone that switched lenses for some shots has two cameras); otherwise they share one camera, as COLMAP's
+    AUTO mode would give every photo without EXIF a camera of its own."""
+    try:
+        with Image.open(path) as image:
+            if image.format == "PNG" and "exif" not in image.info:
+                return False
+            sub = image.getexif().get_ifd(0x8769)
+    except Exception:  # no EXIF worth reading
+        return False
+    return any(isinstance(sub.get(tag), numbers.Real) and float(sub.get(tag)) > 0 for tag in (0x920A, 0xA405))
+
+
 def _stored_as_shown(path: Path) -> bool:
     """True when the file carries no EXIF rotation (its stored pixels are what a viewer shows)."""
     with Image.open(path) as image:
@@ -577,7 +595,9 @@ def reconstruct(images: Path, names: Sequence[str], work: Path, config: SfmConfi
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.num_threads = config.threads
         extraction.sift.max_num_features = config.max_features
-        pycolmap.extract_features(database, images, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
+        per_lens = all(has_exif_focal(images / n) for n in names)  # one camera per lens, else one for all
+        mode = pycolmap.CameraMode.AUTO if per_lens else pycolmap.CameraMode.SINGLE
+        pycolmap.extract_features(database, images, image_names=list(names), camera_mode=mode,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
     progress("features", 1, 1)
     seconds["features"] = seconds.get("features", 0.0) + time.perf_counter() - t0
@@ -817,9 +837,9 @@ def compute_poses(photos: str | os.PathLike, out: str | os.PathLike, config: Sfm
         if missing:
             log.warning("%s: %d photo(s) did not register and are left out: %s", folder, len(missing), ", ".join(missing))
         t0 = time.perf_counter()
-        cam = next(iter(model.cameras.values()))
         image_dir = prepared
-        if camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height).distortion:
+        if any(camera_from_colmap(cam.model.name, list(cam.params), cam.width, cam.height).distortion
+               for cam in model.cameras.values()):
             model, image_dir = _undistorted(model, prepared, work)
         doc, _ = scene_document(model, registered)
         seconds["undistort"] = time.perf_counter() - t0
