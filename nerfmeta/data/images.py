@@ -100,21 +100,38 @@ def _open(path: Path) -> Iterator[Image.Image]:
         yield image
 
 
-def _orientation(image: Image.Image) -> int:
-    """The EXIF orientation tag (1 = as stored) of an opened image; 1 for a damaged EXIF block.
+def _exif(image: Image.Image) -> Image.Exif | None:
+    """The EXIF block of an opened image; None without one, or with a damaged one.
 
     A PNG's EXIF is read only from an eXIf chunk before the pixel data (where the PNG specification
     places it, and where Pillow writes it): Pillow's ``getexif`` on a PNG without one decodes the
     whole image to look behind the pixels, which made reading a scene decode every PNG twice.
     """
     if image.format == "PNG" and "exif" not in image.info:
-        return 1
+        return None
     with _pillow_warnings_logged(Path(getattr(image, "filename", "") or "image")):
         try:
-            value = image.getexif().get(EXIF_ORIENTATION, 1)
-        except Exception:  # a damaged EXIF block: show the pixels as stored
-            value = 1
+            exif = image.getexif()
+        except Exception:  # a damaged EXIF block: as if there were none
+            return None
+    return exif if len(exif) else None
+
+
+def _orientation(image: Image.Image) -> int:
+    """The EXIF orientation tag (1 = as stored) of an opened image; 1 without EXIF or for a damaged block."""
+    exif = _exif(image)
+    value = 1 if exif is None else exif.get(EXIF_ORIENTATION, 1)
     return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+def read_exif(path: str | os.PathLike) -> Image.Exif | None:
+    """The EXIF block of the image file ``path`` (header only); None without one or with a damaged one.
+
+    Raises:
+        SceneError: the file is missing or is not an image Pillow can open.
+    """
+    with _open(Path(path)) as image:
+        return _exif(image)
 
 
 def image_shape(path: str | os.PathLike) -> tuple[int, int]:

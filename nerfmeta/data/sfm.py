@@ -54,7 +54,8 @@ import numpy as np
 from PIL import Image
 
 from nerfmeta.config import bounded
-from nerfmeta.data.images import HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_images
+from nerfmeta.data.images import (EXIF_ORIENTATION, HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_images,
+                                  read_exif)
 from nerfmeta.errors import SceneError
 from nerfmeta.io import write_json
 from nerfmeta.runfolder import run_folder
@@ -376,10 +377,12 @@ def prepare_photo(source: Path, dest: Path, size: tuple[int, int], *, turn: bool
     clockwise with ``turn`` (a portrait photo among landscape ones), alpha composited on white, area-downscaled; a file
     that needs none of this is copied as it is."""
     array = decode_array(source)
+    exif = read_exif(source)
     if turn:
         array = np.ascontiguousarray(np.rot90(array, k=-1))
+    stored_as_shown = exif is None or exif.get(EXIF_ORIENTATION, 1) in (1, None)
     if array.shape[:2] == size and array.ndim == 3 and array.shape[2] == 3 and array.dtype == np.uint8 \
-            and not turn and source.suffix.lower() == dest.suffix.lower() and _stored_as_shown(source):
+            and not turn and source.suffix.lower() == dest.suffix.lower() and stored_as_shown:
         shutil.copyfile(source, dest)
         return
     if array.dtype != np.uint8:
@@ -394,29 +397,16 @@ def prepare_photo(source: Path, dest: Path, size: tuple[int, int], *, turn: bool
     image = Image.fromarray(array)
     if image.size != (size[1], size[0]):
         image = image.resize((size[1], size[0]), Image.Resampling.BOX)
-    exif = _exif_as_shown(source)
-    extra = {} if exif is None else {"exif": exif}
+    # The copy keeps the EXIF (COLMAP's focal-length prior: focal length, 35 mm equivalent, make and model), said
+    # to be upright: its pixels are turned already.
+    extra = {}
+    if exif is not None:
+        exif[EXIF_ORIENTATION] = 1
+        extra["exif"] = exif.tobytes()
     if dest.suffix.lower() in (".jpg", ".jpeg"):
         image.save(dest, quality=95, **extra)
     else:
         image.save(dest, **extra)
-
-
-def _exif_as_shown(path: Path) -> bytes | None:
-    """The EXIF block of ``path`` with its orientation set to 1 (the copy's pixels are turned already), for the
-    prepared copy: COLMAP takes its focal-length prior from the camera's EXIF (focal length, 35 mm equivalent, make
-    and model), which a bare re-encoded copy would lose. None for a file without one (or a damaged one)."""
-    try:
-        with Image.open(path) as image:
-            if image.format == "PNG" and "exif" not in image.info:
-                return None  # (getexif would decode a whole PNG to look behind its pixels)
-            exif = image.getexif()
-            if not len(exif):
-                return None
-            exif[0x0112] = 1
-            return exif.tobytes()
-    except Exception:  # a damaged EXIF block: the copy goes without it, as before
-        return None
 
 
 def has_exif_focal(path: Path) -> bool:
@@ -425,20 +415,12 @@ def has_exif_focal(path: Path) -> bool:
     Photos that all have one are given to COLMAP with one camera per distinct size and EXIF focal length (its AUTO
     mode: a phone that switched lenses for some shots has two cameras); otherwise they share one camera, as COLMAP's
     AUTO mode would give every photo without EXIF a camera of its own."""
+    exif = read_exif(path)
     try:
-        with Image.open(path) as image:
-            if image.format == "PNG" and "exif" not in image.info:
-                return False
-            sub = image.getexif().get_ifd(0x8769)
-    except Exception:  # no EXIF worth reading
+        sub = {} if exif is None else exif.get_ifd(0x8769)
+    except Exception:  # a damaged Exif sub-block: no focal length worth reading
         return False
     return any(isinstance(sub.get(tag), numbers.Real) and float(sub.get(tag)) > 0 for tag in (0x920A, 0xA405))
-
-
-def _stored_as_shown(path: Path) -> bool:
-    """True when the file carries no EXIF rotation (its stored pixels are what a viewer shows)."""
-    with Image.open(path) as image:
-        return image.getexif().get(0x0112, 1) in (1, None)
 
 
 # --------------------------------------------------------------------------------------------
