@@ -16,3 +16,11 @@ class SceneError(NerfmetaError):
 
 class ConfigError(NerfmetaError):
     """A value given on the command line or in a config is not allowed."""
+
+
+def message_line(err: BaseException, *, last: bool = False, limit: int | None = None) -> str:
+    """One line of a library's exception for a one-line error: the first line of its message (``last``: the last,
+    where a tool puts its reason last, as ffmpeg does), cut to ``limit`` characters; its type name for an empty one."""
+    lines = str(err).strip().splitlines()
+    line = (lines[-1] if last else lines[0]) if lines else type(err).__name__
+    return line if limit is None else line[:limit]

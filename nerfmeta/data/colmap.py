@@ -23,7 +23,7 @@ from pathlib import Path
 from nerfmeta.data.common import LoadOptions, find_frame_image
 from nerfmeta.data.images import image_shape
 from nerfmeta.data.scene import Scene
-from nerfmeta.errors import SceneError
+from nerfmeta.errors import SceneError, message_line
 
 NAME = "colmap"
 EXPECTS = "images/ beside COLMAP's sparse model in sparse/0/ or sparse/ (cameras, images, points3D; .bin or .txt)"
@@ -110,8 +110,7 @@ def load(path: Path, options: LoadOptions) -> Scene:
     try:
         model = pycolmap.Reconstruction(str(folder))
     except Exception as err:  # pycolmap raises its own types for a damaged model
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
-        raise SceneError(f"{folder}: not a readable COLMAP model ({first})") from err
+        raise SceneError(f"{folder}: not a readable COLMAP model ({message_line(err, limit=200)})") from err
     names = sorted(posed_images(model))
     if not names:
         raise SceneError(f"{folder}: the COLMAP model poses no image")

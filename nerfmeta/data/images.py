@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image, ImageOps
 
-from nerfmeta.errors import SceneError
+from nerfmeta.errors import SceneError, message_line
 
 log = logging.getLogger(__name__)
 
@@ -93,9 +93,9 @@ def _open(path: Path) -> Iterator[Image.Image]:
         with _pillow_warnings_logged(path):
             image = Image.open(path)
     except Image.DecompressionBombError as err:
-        raise SceneError(f"{path}: image is too large to open safely ({_short(err)})") from err
+        raise SceneError(f"{path}: image is too large to open safely ({message_line(err)})") from err
     except Exception as err:  # Pillow raises many types for a bad file
-        raise SceneError(f"{path}: not a readable PNG, JPEG or HEIC image ({_short(err)})") from err
+        raise SceneError(f"{path}: not a readable PNG, JPEG or HEIC image ({message_line(err)})") from err
     with image:
         yield image
 
@@ -202,7 +202,7 @@ def decode_array(path: Path) -> np.ndarray:
         except SceneError:
             raise
         except Exception as err:  # Pillow raises many types for a bad file
-            raise SceneError(f"{path}: cannot decode image ({_short(err)})") from err
+            raise SceneError(f"{path}: cannot decode image ({message_line(err)})") from err
 
 
 def pixel_array(image: Image.Image, *, name: str = "image") -> np.ndarray:
@@ -375,9 +375,3 @@ def _is_16bit_colour_png(path: Path) -> bool:
     except OSError:
         return False
     return head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 26 and head[24] == 16 and head[25] in (2, 6)
-
-
-def _short(err: BaseException) -> str:
-    """The first line of an exception message, for one-line errors."""
-    text = str(err).strip().splitlines()
-    return text[0] if text else type(err).__name__

@@ -34,7 +34,7 @@ from PIL import Image
 
 from nerfmeta.config import bounded
 from nerfmeta.data.images import MAX_SIDE
-from nerfmeta.errors import ConfigError, SceneError
+from nerfmeta.errors import ConfigError, SceneError, message_line
 from nerfmeta.io import write_json
 from nerfmeta.runfolder import run_folder
 
@@ -102,11 +102,6 @@ def scaled_size(width: int, height: int, max_side: int) -> tuple[int, int]:
     return max(2, 2 * round(width * scale / 2)), max(2, 2 * round(height * scale / 2))
 
 
-def _short(err: BaseException) -> str:
-    """The last line of an error (ffmpeg's reason comes last), cut to 200 characters."""
-    return (str(err).strip().splitlines() or [type(err).__name__])[-1][:200]
-
-
 def _ffmpeg():
     try:
         import imageio_ffmpeg
@@ -129,7 +124,7 @@ def probe(video: Path) -> dict:
         meta = next(reader)
         reader.close()
     except (RuntimeError, OSError, StopIteration, ValueError, IndexError, AttributeError) as err:
-        raise SceneError(f"{video}: not a video ffmpeg can read ({_short(err)})") from err
+        raise SceneError(f"{video}: not a video ffmpeg can read ({message_line(err, last=True, limit=200)})") from err
     size = meta.get("size")
     if not size or min(size) < 1:
         raise SceneError(f"{video}: has no video stream")
@@ -159,7 +154,7 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
         try:
             expected = ffmpeg.count_frames_and_secs(str(video))[0]
         except (RuntimeError, OSError, ValueError) as err:
-            raise SceneError(f"{video}: cannot count its frames ({_short(err)})") from err
+            raise SceneError(f"{video}: cannot count its frames ({message_line(err, last=True, limit=200)})") from err
     expected = max(1, expected)
     windows = frame_windows(expected, config.frames)
     params = ["-vf", f"scale={out_w}:{out_h}:flags=area"] if (out_w, out_h) != (width, height) else None
@@ -195,7 +190,7 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
             total = index + 1
         flush()
     except (RuntimeError, OSError) as err:
-        raise SceneError(f"{video}: decoding failed after {total} frames ({_short(err)})") from err
+        raise SceneError(f"{video}: decoding failed after {total} frames ({message_line(err, last=True, limit=200)})") from err
     finally:
         reader.close()
     progress("frames", len(kept), len(kept))
