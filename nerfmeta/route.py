@@ -47,7 +47,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 from nerfmeta.errors import ConfigError
 from nerfmeta.fit.loop import Callback, FitConfig
-from nerfmeta.fit.run import RunConfig, fit_in_folder, run_fit, write_run_summary
+from nerfmeta.fit.run import RunConfig, fit_in_folder, load_run_scene, run_fit, write_run_summary
 from nerfmeta.io import write_json
 from nerfmeta.runfolder import CHECKPOINT, run_folder
 from nerfmeta.zoo import Zoo, ZooEntry
@@ -355,10 +355,7 @@ def _score_text(score: Mapping[str, Any] | None) -> str:
 
 def scene_facts(config: RunConfig) -> SceneFacts:
     """The facts of ``config.scene`` as the fit loads it (downscale, background, normalisation)."""
-    from nerfmeta.data import load_scene
-
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type, max_side=config.max_side)
+    scene = load_run_scene(config)
     box = scene.bounds.detach().cpu().tolist()
     return SceneFacts((tuple(box[0]), tuple(box[1])), (scene.height, scene.width),
                       None if scene.background is None else tuple(float(v) for v in scene.background))

@@ -170,14 +170,15 @@ class Scene:
         splits = {k: tuple(new_index[i] for i in v if i in new_index) for k, v in self.splits.items()}
         if not splits.get("train"):
             raise SceneError(f"{self.source}: --drop-views leaves no training view")
-        idx = torch.tensor(keep, dtype=torch.long)
-        return replace(self, images=self.images[idx], poses=self.poses[idx], intrinsics=self.intrinsics[idx],
-                       alphas=None if self.alphas is None else self.alphas[idx], splits=splits,
-                       image_names=tuple(self.image_names[i] for i in keep))
+        return self._views(torch.tensor(keep, dtype=torch.long), splits)
 
     def subset(self, split: str) -> "Scene":
         """The views of one split as a scene of their own (splits renumbered)."""
         idx = self.split_indices(split)
+        return self._views(idx, {split: tuple(range(len(idx)))})
+
+    def _views(self, idx: torch.Tensor, splits: dict[str, tuple[int, ...]]) -> "Scene":
+        """The scene of the views ``idx`` (in that order) with ``splits`` over their new positions."""
         names = tuple(self.image_names[i] for i in idx.tolist()) if self.image_names else ()
         return replace(
             self,
@@ -185,7 +186,7 @@ class Scene:
             poses=self.poses[idx],
             intrinsics=self.intrinsics[idx],
             alphas=None if self.alphas is None else self.alphas[idx],
-            splits={split: tuple(range(len(idx)))},
+            splits=splits,
             image_names=names,
         )
 

@@ -136,11 +136,18 @@ class RunConfig:
         return RunConfig(**data)
 
 
+def load_run_scene(config: RunConfig):
+    """The scene of ``config`` loaded with the run's options (size, background, normalisation, scene type), every
+    view kept: what the route reads its facts from, and what :func:`run_scene` starts from."""
+    return load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
+                      scene_type=config.scene_type, max_side=config.max_side)
+
+
 def run_scene(config: RunConfig):
-    """The scene of ``config`` as its fit sees it: loaded with the run's options, then put in the fit's
-    space (a forward-facing scene in NDC, :func:`nerfmeta.fit.sampler.fit_space`)."""
-    scene = load_scene(config.scene, downscale=config.downscale, background=config.background, normalize=config.normalize,
-                       scene_type=config.scene_type, max_side=config.max_side).without_views(config.drop_views)
+    """The scene of ``config`` as its fit sees it: loaded with the run's options (:func:`load_run_scene`), without
+    its dropped views, then put in the fit's space (a forward-facing scene in NDC,
+    :func:`nerfmeta.fit.sampler.fit_space`)."""
+    scene = load_run_scene(config).without_views(config.drop_views)
     if scene.downscale > config.downscale:
         log.warning("%s: read at 1/%g, %d x %d, to keep the longest side within --max-side %d (--max-side 0 or "
                     "--downscale F for another size)", config.scene, scene.downscale, scene.width, scene.height,
