@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from nerfmeta.data.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, downscale_image, image_shape, list_images, read_image
+from nerfmeta.data.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, downscale_image, image_shape, list_photos, read_image
 from nerfmeta.data.registry import FORMATS, load_scene
 from nerfmeta.errors import SceneError
 
@@ -90,7 +90,7 @@ def read_scene_views(
             factor = _downscale_for(_first_image(path), size)
             scene = load_scene(path, downscale=factor, background=background, max_pixels=max_pixels)
             return to_input_size(scene_premultiplied(scene), size)
-        images = list_images(path) or list_images(path / "images")
+        images = list_photos(path)
         if images:
             return read_image_views(images, size, max_pixels)
         if not any(path.iterdir()):

@@ -26,11 +26,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from nerfmeta.data.images import list_photos  # noqa: E402
 from nerfmeta.data.sfm import (  # noqa: E402
     SfmConfig,
     check_photos,
     prepared_names,
-    list_photos,
     map_matches,
     match_agreement,
     prepare_photo,

@@ -354,6 +354,12 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+def list_photos(folder: str | os.PathLike) -> list[Path]:
+    """The images of a folder of photos: directly in ``folder``, else in its ``images/`` (:func:`list_images`)."""
+    folder = Path(folder)
+    return list_images(folder) or list_images(folder / "images")
+
+
 def unread_images(folder: str | os.PathLike) -> dict[str, int]:
     """How many image files of each kind nerfmeta does not read (:data:`OTHER_IMAGE_SUFFIXES`) are directly in
     ``folder``, by lower-case suffix (empty for a missing folder)."""

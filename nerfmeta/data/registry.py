@@ -15,7 +15,7 @@ from typing import Callable
 
 from nerfmeta.data import blender, colmap, llff, nerfstudio, npz
 from nerfmeta.data.common import LoadOptions
-from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_images, unread_images
+from nerfmeta.data.images import DEFAULT_MAX_PIXELS, list_photos, unread_images
 from nerfmeta.data.scene import Scene
 from nerfmeta.data.video import VIDEO_SUFFIXES
 from nerfmeta.errors import ConfigError, SceneError
@@ -57,8 +57,7 @@ def is_photo_folder(path: str | os.PathLike) -> bool:
     """True for a folder of photos (directly in it or in its ``images/``) without any pose file a parser reads: what
     ``nerfmeta poses`` (and ``nerfmeta fit`` on the way) turns into a scene."""
     path = Path(path)
-    return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(
-        list_images(path) or list_images(path / "images"))
+    return path.is_dir() and not any(fmt.detect(path) for fmt in FORMATS) and bool(list_photos(path))
 
 
 def detect_format(path: str | os.PathLike) -> SceneFormat:
@@ -77,7 +76,7 @@ def detect_format(path: str | os.PathLike) -> SceneFormat:
     if path.is_dir():
         if not any(path.iterdir()):
             raise SceneError(f"{path}: folder is empty (supported formats: {_supported()})")
-        if list_images(path) or list_images(path / "images"):
+        if list_photos(path):
             raise SceneError(
                 f"{path}: has images but no camera poses: add transforms_train.json (Blender), "
                 f"transforms.json (nerfstudio) or poses_bounds.npy (LLFF); {POSE_TOOLS_HINT}"

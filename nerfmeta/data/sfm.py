@@ -54,7 +54,7 @@ import numpy as np
 from PIL import Image
 
 from nerfmeta.config import bounded
-from nerfmeta.data.images import (EXIF_ORIENTATION, HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_images,
+from nerfmeta.data.images import (EXIF_ORIENTATION, HEIF_SUFFIXES, MAX_SIDE, decode_array, image_shape, list_photos,
                                   read_exif)
 from nerfmeta.errors import SceneError
 from nerfmeta.io import write_json
@@ -311,12 +311,6 @@ def photo_hash(paths: Sequence[Path], config: SfmConfig) -> str:
 
 # --------------------------------------------------------------------------------------------
 # Photos
-
-
-def list_photos(folder: str | os.PathLike) -> list[Path]:
-    """The photos of ``folder`` (PNG, JPEG or HEIC/HEIF directly in it, else in its ``images/``), sorted by name."""
-    folder = Path(folder)
-    return list_images(folder) or list_images(folder / IMAGES)
 
 
 def check_photos(paths: Sequence[Path], folder: Path) -> tuple[tuple[int, int], frozenset[str]]:
