@@ -157,6 +157,7 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
             raise SceneError(f"{video}: cannot count its frames ({message_line(err, last=True, limit=200)})") from err
     expected = max(1, expected)
     windows = frame_windows(expected, config.frames)
+    n_windows = min(config.frames, expected)  # every window holds a frame (frame_windows)
     params = ["-vf", f"scale={out_w}:{out_h}:flags=area"] if (out_w, out_h) != (width, height) else None
     t0 = time.perf_counter()
     kept: list[dict] = []
@@ -183,7 +184,7 @@ def extract_frames(video: str | os.PathLike, out: Path, config: FrameConfig = Fr
             if this != window:
                 flush()
                 best, window = None, this
-                progress("frames", len(kept), len(set(windows)))
+                progress("frames", len(kept), n_windows)
             score = sharpness(_gray_copy(frame))
             if best is None or score > best[0]:
                 best = (score, index, frame.copy())
