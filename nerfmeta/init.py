@@ -21,7 +21,7 @@ from typing import Any
 import torch
 
 from nerfmeta import validate
-from nerfmeta.errors import ConfigError
+from nerfmeta.errors import ConfigError, message_line
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fields.registry import BACKBONES, build_model, config_from_dict
 from nerfmeta.io import check_sha256, load_tensors, read_json_index, save_tensors, sha256_file, to_jsonable, write_json
@@ -55,7 +55,7 @@ class SavedInit:
         try:
             missing, unexpected = model.load_state_dict({k: v.to(device) for k, v in self.state.items()}, strict=False)
         except RuntimeError as err:  # a tensor of another shape
-            raise ConfigError(f"{self.path}: weights do not fit a {self.backbone} model ({str(err).splitlines()[-1].strip()})") from None
+            raise ConfigError(f"{self.path}: weights do not fit a {self.backbone} model ({message_line(err, last=True)})") from None
         if missing or unexpected:
             raise ConfigError(f"{self.path}: weights do not fit a {self.backbone} model (missing {missing[:3]}, unexpected {unexpected[:3]})")
         return model

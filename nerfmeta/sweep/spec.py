@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from nerfmeta.config import did_you_mean
-from nerfmeta.errors import ConfigError
+from nerfmeta.errors import ConfigError, message_line
 
 SAMPLERS = ("grid", "random", "tpe", "nsga2")
 """Samplers a SPEC may name; ``grid`` is the one-at-a-time design of the source study."""
@@ -200,7 +200,7 @@ def check_values(backbone: str, values: dict[str, dict[str, Any]], where: str) -
         base = dataclasses.asdict(default_config(backbone))
         config_from_dict(backbone, {**base, **values.get("model", {})})
     except (ConfigError, TypeError, ValueError) as err:
-        raise ConfigError(f"{where}: {str(err).splitlines()[0]}") from None
+        raise ConfigError(f"{where}: {message_line(err)}") from None
 
 
 def _field_default(section: str, field: str, backbone: str) -> Any:
