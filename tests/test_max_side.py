@@ -88,7 +88,8 @@ def _nerfstudio_scene(folder: Path, size: tuple[int, int], copies: dict[int, int
     (folder / "transforms.json").write_text(json.dumps(doc))
 
 
-def test_nerfstudio_reduced_copies_are_read_when_the_factor_matches(tmp_path: Path) -> None:
+def test_nerfstudio_reduced_copies_are_read_when_the_factor_matches(tmp_path: Path,
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
     """ns-process-data writes images_2/4/8 beside images/: a fit at 1/4 decodes the quarter-size copies."""
     _nerfstudio_scene(tmp_path / "s", (64, 96), {2: 20, 4: 40})
     full = load_scene(tmp_path / "s", normalize=False)
@@ -101,6 +102,15 @@ def test_nerfstudio_reduced_copies_are_read_when_the_factor_matches(tmp_path: Pa
     assert float(given.images.mean()) == pytest.approx(20 / 255, abs=1e-6) and given.downscale == 2.0
     eighth = load_scene(tmp_path / "s", normalize=False, downscale=8)  # no images_8/: images/ reduced on load
     assert float(eighth.images.mean()) == pytest.approx(100 / 255, abs=1e-6) and eighth.width == 12
-    (tmp_path / "s" / "images_4" / "frame_00003.png").unlink()  # an incomplete copy is passed over
-    assert float(load_scene(tmp_path / "s", normalize=False, max_side=24).images.mean()) == pytest.approx(100 / 255,
-                                                                                                        abs=1e-6)
+    assert "images_" not in caplog.text  # nothing to say while the copies are whole
+    (tmp_path / "s" / "images_4" / "frame_00003.png").unlink()  # an incomplete copy is passed over, and said so
+    with caplog.at_level("WARNING"):
+        assert float(load_scene(tmp_path / "s", normalize=False, max_side=24).images.mean()) == pytest.approx(
+            100 / 255, abs=1e-6)
+    assert "images_4 holds 3 of the 4 frames' images" in caplog.text
+    caplog.clear()
+    Image.fromarray(np.full((8, 12, 3), 40, np.uint8)).save(tmp_path / "s" / "images_2" / "frame_00000.png")
+    with caplog.at_level("WARNING"):  # a copy of another size (a factor of 8 filed as images_2/)
+        assert float(load_scene(tmp_path / "s", normalize=False, downscale=2).images.mean()) == pytest.approx(
+            100 / 255, abs=1e-6)
+    assert "holds 12 x 8 images, not images/ reduced 2 times (48 x 32)" in caplog.text

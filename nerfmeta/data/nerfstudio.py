@@ -113,19 +113,30 @@ def _focal_from_angle(angle: Any, size: int, *, where: str) -> float:
 def reduced_copies(path: Path, image_paths: list[Path], factor: float, size: tuple[int, int]) -> list[Path] | None:
     """The ``images_N/`` copies of ``image_paths`` (``images/...`` under ``path``) for the whole-number ``factor`` N,
     as nerfstudio's ``ns-process-data`` writes ``images_2/``, ``images_4/`` and ``images_8/`` beside ``images/``:
-    None unless every one exists and the first is ``size`` = (height, width) reduced by N (to a pixel)."""
+    None unless every one exists and the first is ``size`` = (height, width) reduced by N (to a pixel); a copy folder
+    that is incomplete or of another size is passed over with a warning (as the LLFF loader's ``images_N/``)."""
     if factor <= 1 or not float(factor).is_integer():
+        return None
+    folder = path / f"images_{int(factor)}"
+    if not folder.is_dir():
         return None
     copies = []
     for image in image_paths:
         parts = image.relative_to(path).parts
         if len(parts) < 2 or parts[0] != "images":
             return None
-        copies.append(path.joinpath(f"images_{int(factor)}", *parts[1:]))
-        if not copies[-1].is_file():
-            return None
+        copies.append(folder.joinpath(*parts[1:]))
+    held = sum(copy.is_file() for copy in copies)
+    if held < len(copies):
+        log.warning("%s holds %d of the %d frames' images: reading images/ and downscaling it instead", folder, held,
+                    len(copies))
+        return None
     want, got = downscaled_size(*size, factor), image_shape(copies[0])
-    return copies if abs(want[0] - got[0]) <= 1 and abs(want[1] - got[1]) <= 1 else None
+    if abs(want[0] - got[0]) > 1 or abs(want[1] - got[1]) > 1:
+        log.warning("%s holds %d x %d images, not images/ reduced %d times (%d x %d): reading images/ instead", folder,
+                    got[1], got[0], int(factor), want[1], want[0])
+        return None
+    return copies
 
 
 def load(path: Path, options: LoadOptions) -> Scene:
