@@ -1,0 +1,249 @@
+"""How much is a better *shape* worth as the voxel grid's start? The true occupancy, the visual hull, a learned guess.
+
+Issue #17's carved start (:mod:`nerfmeta.priors`) starts the coarse grid from the visual hull of the training views,
+and it ends level with the scratch grid or below it on concave objects. This probe measures what a start of the
+*right* shape would give, and how much of that a small network over the views recovers. Each arm starts the coarse
+grid as the carved start does (alpha :data:`~nerfmeta.priors.start.HULL_ALPHA` a step on the occupied points,
+:data:`~nerfmeta.priors.start.EMPTY_ALPHA` elsewhere, the mean colour the points project to, the carve's 100 coarse
+steps); only *which* points are occupied differs:
+
+- ``scratch``: no start (the tuned defaults); ``carve``: the shipped carved start (`--init carve`);
+- ``truth:D``: a generated scene's exact SDF below ``D`` coarse voxels (the oracle: what no view-based start can beat);
+- ``hull:M:K``: the visual hull with masks dilated by ``M`` pixels, then grown by ``K`` voxels in 3-D;
+- ``net:WEIGHTS:TAU``: a small 3-D CNN (:class:`OccupancyNet`) over per-voxel multi-view features
+  (:func:`point_features`: how many views see the point and show foreground there, the mean and spread of the
+  colours it projects to), trained by ``train`` on a generated collection to predict the ``truth:1`` occupancy;
+  the points it gives above ``TAU``, within the visual hull (2-pixel masks, grown a voxel).
+
+``fit`` prints one JSON line: test PSNR on all test views at fixed iterations (the fit is as long as the last mark,
+its learning rate decaying over it; one torch thread, seed 0: the
+figures do not depend on the machine's load). BENCHMARKS.md, *Grid priors: what a right shape is worth*, has what
+it measured.
+
+Usage::
+
+    .venv/bin/python scripts/probe_occupancy_start.py train COLLECTION [COLLECTION ...] --out NET.pt [--width 16] [--steps 2000]
+    .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import random
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nerfmeta.data import load_scene  # noqa: E402
+from nerfmeta.fields.grid_ops import dilate, grid_points  # noqa: E402
+from nerfmeta.fields.registry import build_model  # noqa: E402
+from nerfmeta.fields.voxel_grid import VoxelGridConfig  # noqa: E402
+from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
+from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
+from nerfmeta.geometry.truth import scene_sdf_of  # noqa: E402
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, mean_colour, silhouettes, visual_hull  # noqa: E402
+from nerfmeta.priors.start import CARVE_COARSE_ITERS, EMPTY_ALPHA, HULL_ALPHA, carve_grid_start, sigma_for_alpha  # noqa: E402
+
+N_FEATURES = 10
+NET_HULL_MARGIN_PX = 2
+"""The learned start keeps only points of the visual hull with masks dilated this much, grown a voxel in 3-D."""
+
+
+def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,
+                   intrinsics: torch.Tensor, chunk: int = 1 << 15) -> torch.Tensor:
+    """(F, N) features of (N, 3) points from (V, H, W) masks and (V, H, W, 3) images: the fraction of views that see
+    a point; of those, the fractions on foreground (the masks as they are, and dilated a pixel); whether no view /
+    at most one view shows background there; the mean colour over the foreground views (3) and its RMS spread; the
+    fraction of all views on foreground."""
+    v = masks.shape[0]
+    dilated = dilate_masks(masks, 1).reshape(v, -1)
+    flat_images = images.reshape(v, -1, 3)
+    out = []
+    for p in points.split(chunk):
+        flat, seen, fg = lookup(p, masks, poses, intrinsics)
+        fg1 = torch.gather(dilated, 1, flat) & seen
+        rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))
+        n_seen = seen.sum(0).clamp(min=1).float()
+        w = fg.float()[..., None]
+        n_fg = w.sum(0).clamp(min=1)
+        mean = (rgb * w).sum(0) / n_fg
+        spread = (((rgb - mean) ** 2 * w).sum(0) / n_fg).mean(-1).sqrt()
+        background = (seen & ~fg1).sum(0)
+        out.append(torch.stack([seen.sum(0) / v, fg.sum(0) / n_seen, fg1.sum(0) / n_seen, (background == 0).float(),
+                                (background <= 1).float(), mean[:, 0], mean[:, 1], mean[:, 2], spread, fg.sum(0) / v]))
+    return torch.cat(out, 1)
+
+
+class OccupancyNet(nn.Module):
+    """(F, X, Y, Z) features -> (X, Y, Z) occupancy logits: 3x3x3 convolutions, dilated 1, 2, 4, 8, 1 (a receptive
+    field 33 voxels across), ``width`` channels, ReLU."""
+
+    def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4, 8, 1)):
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = N_FEATURES
+        for d in dilations:
+            layers += [nn.Conv3d(channels, width, 3, padding=d, dilation=d), nn.ReLU()]
+            channels = width
+        self.net = nn.Sequential(*layers, nn.Conv3d(channels, 1, 1))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features[None])[0, 0]
+
+
+def coarse_model(scene):
+    """The scratch grid's model for ``scene`` (its coarse grid is the one every arm starts)."""
+    return build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
+
+
+def true_distance(scene_path: Path, scene, model) -> torch.Tensor:
+    """(X, Y, Z) exact signed distance of a generated scene at the coarse grid's points, in coarse voxels."""
+    exact, _ = scene_sdf_of(scene_path)
+    points = grid_points(model.bounds, model.size).reshape(-1, 3).double()
+    norm = scene.normalization
+    with torch.no_grad():
+        d = torch.cat([exact(norm.invert_points(c)) for c in points.split(1 << 15)]).reshape(model.size)
+    return d * norm.scale / model.voxel
+
+
+def volume(scene_path: Path, *, truth: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """A scene's features (F, X, Y, Z) on the coarse grid, the hull the network may keep, and the ``truth:1`` target."""
+    scene = load_scene(scene_path)
+    model = coarse_model(scene)
+    points = grid_points(model.bounds, model.size).reshape(-1, 3)
+    train = scene.subset("train")
+    sil = silhouettes(train.images, train.alphas)
+    if sil.masks is None:
+        raise SystemExit(f"{scene_path}: {sil.reason}")
+    feats = point_features(points, sil.masks, train.images, train.poses, train.intrinsics).reshape(N_FEATURES, *model.size)
+    inside, seen = visual_hull(points, dilate_masks(sil.masks, NET_HULL_MARGIN_PX), train.poses, train.intrinsics)
+    hull = dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), 1)
+    return feats.float(), hull, (true_distance(scene_path, scene, model) < 1.0) if truth else None
+
+
+def train(args: argparse.Namespace) -> int:
+    """Fit :class:`OccupancyNet` to every scene of the collections (weighted BCE inside the hull, recall first)."""
+    from nerfmeta.collection.generate import load_collection
+
+    torch.manual_seed(args.seed)
+    rng = random.Random(args.seed)
+    data = []
+    for root in args.collections:
+        collection = load_collection(Path(root))
+        for record in collection.scenes:
+            data.append(volume(collection.root / record.path, truth=True))
+    print(f"{len(data)} scenes", flush=True)
+    net = OccupancyNet(args.width)
+    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
+    t0 = time.perf_counter()
+    for step in range(args.steps):
+        feats, hull, target = rng.choice(data)
+        if rng.random() < 0.5:  # mirrored along x
+            feats, hull, target = feats.flip(1), hull.flip(0), target.flip(0)
+        logits = net(feats)
+        loss = F.binary_cross_entropy_with_logits(logits[hull], target[hull].float(), pos_weight=torch.tensor(args.pos_weight))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if step % 200 == 0 or step == args.steps - 1:
+            print(json.dumps({"step": step, "loss": round(loss.item(), 4), "s": round(time.perf_counter() - t0, 1)}), flush=True)
+    torch.save(net.state_dict(), args.out)
+    return 0
+
+
+def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
+    """(N,) bool: the coarse points the arm ``truth:D``, ``hull:M:K`` or ``net:WEIGHTS:TAU`` starts occupied."""
+    kind, *params = arm.split(":")
+    if kind == "truth":
+        return (true_distance(scene_path, scene, model) < float(params[0])).reshape(-1)
+    if kind == "hull":
+        train = scene.subset("train")
+        sil = silhouettes(train.images, train.alphas)
+        points = grid_points(model.bounds, model.size).reshape(-1, 3)
+        inside, seen = visual_hull(points, dilate_masks(sil.masks, int(params[0])), train.poses, train.intrinsics)
+        return dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), int(params[1])).reshape(-1)
+    if kind == "net":
+        state = torch.load(params[0])
+        net = OccupancyNet(state["net.0.weight"].shape[0])
+        net.load_state_dict(state)
+        feats, hull, _ = volume(scene_path, truth=False)
+        with torch.no_grad():
+            return ((torch.sigmoid(net(feats)) > float(params[1])) & hull).reshape(-1)
+    raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS:TAU")
+
+
+def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
+    """The arm's model, started, and a note (what it occupied, how long building it took)."""
+    config = VoxelGridConfig().for_scene(scene)
+    if arm == "scratch":
+        return build_model("grid", config, scene.bounds, seed=0), "no start"
+    model = build_model("grid", dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS), scene.bounds, seed=0)
+    if arm == "carve":
+        return model, carve_grid_start(model, scene, background).reason
+    t0 = time.perf_counter()
+    occ = occupied_points(arm, scene_path, scene, model)
+    train = scene.subset("train")
+    points = grid_points(model.bounds, model.size).reshape(-1, 3)
+    masks = silhouettes(train.images, train.alphas).masks
+    rgb = torch.where(occ[:, None], mean_colour(points, masks, train.images, train.poses, train.intrinsics, background),
+                      background)
+    step = model.config.stepsize * model.voxel
+    sigma = torch.where(occ, sigma_for_alpha(HULL_ALPHA, step), sigma_for_alpha(EMPTY_ALPHA, step))
+    model.load_coarse_start(sigma.view(model.size).float(), rgb.t().reshape(3, *model.size).float())
+    return model, f"{100 * float(occ.float().mean()):.1f}% of the coarse grid occupied, built in {time.perf_counter() - t0:.2f} s"
+
+
+def fit_arm(args: argparse.Namespace) -> int:
+    """One arm on one scene: test PSNR at the marked iterations, one JSON line."""
+    scene = load_scene(args.scene)
+    background = torch.tensor(scene.background, dtype=torch.float32)
+    model, note = start(args.arm, Path(args.scene), scene, background)
+    views = list(scene.splits["test"])
+    psnr: dict[int, float] = {}
+
+    def evaluate(step: int) -> None:
+        psnr[step] = round(evaluate_views(model, scene, views, background, with_ssim=False).psnr, 3)
+        model.train()
+
+    def callback(record, model_, state) -> None:
+        if record.iter in args.marks and record.iter not in psnr:
+            evaluate(record.iter)
+
+    evaluate(0)
+    result = fit(model, scene, FitConfig(iters=max(args.marks), eval_every=0, checkpoint_every=0, final_ssim=False),
+                 background=background, callbacks=[callback])
+    psnr[max(args.marks)] = round(result.final.psnr, 3)
+    print(json.dumps({"scene": str(args.scene), "arm": args.arm, "note": note, "psnr": psnr}))
+    return 0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train", help="train the occupancy network on generated collections")
+    t.add_argument("collections", nargs="+", help="folders made by `nerfmeta make-collection`")
+    t.add_argument("--out", required=True, type=Path)
+    t.add_argument("--width", type=int, default=16)
+    t.add_argument("--steps", type=int, default=2000)
+    t.add_argument("--pos-weight", type=float, default=3.0, help="weight of the occupied points' loss (recall first)")
+    t.add_argument("--seed", type=int, default=0)
+    f = sub.add_parser("fit", help="fit one scene from one arm's start")
+    f.add_argument("scene", help="a generated scene (truth arms need its collection.json)")
+    f.add_argument("arm", help="scratch, carve, truth:D, hull:M:K or net:WEIGHTS:TAU")
+    f.add_argument("--marks", type=int, nargs="+", default=[50, 100, 200, 400, 700, 1000])
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    return train(args) if args.command == "train" else fit_arm(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
