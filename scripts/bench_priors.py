@@ -55,7 +55,8 @@ EVAL_TIMES = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32
 """Wall seconds at which every arm's test PSNR is taken (the run in BENCHMARKS.md stopped at 32 s: under load a
 1000-iteration fit took up to 344 s, and the late part of its curves was seen only at the end)."""
 GRID_ARMS = ("scratch", "carve")
-"""Grid arms: ``scratch`` (tuned defaults) and ``carve`` (the visual-hull start, :mod:`nerfmeta.priors`)."""
+"""Grid arms: ``scratch`` (tuned defaults) and ``carve`` (the visual-hull start, :mod:`nerfmeta.priors`); ``occupancy``
+(the learned occupancy start, :mod:`nerfmeta.priors.occupancy`) joins them with ``--occupancy-net``."""
 
 
 @dataclass
@@ -164,8 +165,10 @@ def timed_fit(model, scene, fit_config, background, *, build_s: float, extra_tim
     return times, psnrs, iters, wall, result.final.psnr
 
 
-def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, ...] = ()) -> Curve:
-    """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built."""
+def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, ...] = (),
+             occupancy_net: Path | None = None) -> Curve:
+    """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built (and, for
+    ``occupancy``, before the network ``occupancy_net`` is read)."""
     from nerfmeta.data import load_scene
     from nerfmeta.fields.registry import build_model
     from nerfmeta.fields.voxel_grid import VoxelGridConfig
@@ -178,11 +181,17 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     t0 = time.perf_counter()
     config = VoxelGridConfig().for_scene(scene)
     note = ""
-    if arm == "carve":
+    if arm in ("carve", "occupancy"):
         config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS)
     model = build_model("grid", config, scene.bounds, seed=0)
-    if arm == "carve":
-        report = carve_grid_start(model, scene, background)
+    if arm in ("carve", "occupancy"):
+        if arm == "carve":
+            report = carve_grid_start(model, scene, background)
+        else:
+            from nerfmeta.priors.occupancy import OccupancyNet, learned_grid_start
+
+            net = OccupancyNet.from_state(torch.load(occupancy_net))
+            report = learned_grid_start(model, scene, background, net)
         note = report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
             model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
@@ -296,10 +305,10 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
 
 def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
-    k, name, group, path, arms, iters, zoo = job
+    k, name, group, path, arms, iters, zoo, occupancy_net = job
     torch.set_num_threads(1)
     order = arms[k % len(arms):] + arms[: k % len(arms)]
-    curves = {arm: grid_arm(arm, path, iters) for arm in order}
+    curves = {arm: grid_arm(arm, path, iters, occupancy_net=occupancy_net) for arm in order}
     mlp: dict[str, Curve] = {}
     if zoo is not None:
         for arm in (("scratch-nerf", "routed-nerf") if k % 2 == 0 else ("routed-nerf", "scratch-nerf")):
@@ -334,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default="", help="comma-separated scene names (default: all)")
     p.add_argument("--workers", type=int, default=2, help="scenes fitted at once (one torch thread each)")
     p.add_argument("--report", action="store_true", help="only print the tables of OUT/results.json")
+    p.add_argument("--occupancy-net", type=Path, default=None, metavar="NET.pt",
+                   help="add the learned occupancy start as an arm (weights from scripts/probe_occupancy_start.py train)")
     args = p.parse_args(argv)
     if args.report:
         doc = json.loads((args.out / "results.json").read_text())
@@ -342,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(tables(doc["results"], tuple(doc["arms"]), any("mlp_figures" in r for r in doc["results"].values()))))
         return 0
     torch.set_num_threads(1)
-    arms = tuple(a for a in args.arms.split(",") if a)
+    arms = tuple(a for a in args.arms.split(",") if a) + (("occupancy",) if args.occupancy_net else ())
     load_before = os.getloadavg()
     t_start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -350,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         scenes = [s for s in scenes if s[0] in args.only.split(",")]
     results: dict[str, Any] = {}
-    jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None) for k, (name, group, path) in enumerate(scenes)]
+    jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None, args.occupancy_net)
+            for k, (name, group, path) in enumerate(scenes)]
     with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for name, res in pool.map(fit_scene, jobs):
             results[name] = res

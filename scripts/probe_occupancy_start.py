@@ -10,8 +10,8 @@ steps); only *which* points are occupied differs:
 - ``scratch``: no start (the tuned defaults); ``carve``: the shipped carved start (`--init carve`);
 - ``truth:D``: a generated scene's exact SDF below ``D`` coarse voxels (the oracle: what no view-based start can beat);
 - ``hull:M:K``: the visual hull with masks dilated by ``M`` pixels, then grown by ``K`` voxels in 3-D;
-- ``net:WEIGHTS:TAU``: a small 3-D CNN (:class:`OccupancyNet`) over per-voxel multi-view features
-  (:func:`point_features`: how many views see the point and show foreground there, the mean and spread of the
+- ``net:WEIGHTS[:TAU]``: :mod:`nerfmeta.priors.occupancy`'s learned start, a small 3-D CNN over per-voxel multi-view features
+  (how many views see the point and show foreground there, the mean and spread of the
   colours it projects to), trained by ``train`` on a generated collection to predict the ``truth:1`` occupancy;
   the points it gives above ``TAU``, within the visual hull (2-pixel masks, grown a voxel).
 
@@ -37,7 +37,6 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,55 +49,9 @@ from nerfmeta.fields.voxel_grid import VoxelGridConfig  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
 from nerfmeta.geometry.truth import scene_sdf_of  # noqa: E402
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, mean_colour, silhouettes, visual_hull  # noqa: E402
-from nerfmeta.priors.start import CARVE_COARSE_ITERS, EMPTY_ALPHA, HULL_ALPHA, carve_grid_start, sigma_for_alpha  # noqa: E402
-
-N_FEATURES = 10
-NET_HULL_MARGIN_PX = 2
-"""The learned start keeps only points of the visual hull with masks dilated this much, grown a voxel in 3-D."""
-
-
-def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,
-                   intrinsics: torch.Tensor, chunk: int = 1 << 15) -> torch.Tensor:
-    """(F, N) features of (N, 3) points from (V, H, W) masks and (V, H, W, 3) images: the fraction of views that see
-    a point; of those, the fractions on foreground (the masks as they are, and dilated a pixel); whether no view /
-    at most one view shows background there; the mean colour over the foreground views (3) and its RMS spread; the
-    fraction of all views on foreground."""
-    v = masks.shape[0]
-    dilated = dilate_masks(masks, 1).reshape(v, -1)
-    flat_images = images.reshape(v, -1, 3)
-    out = []
-    for p in points.split(chunk):
-        flat, seen, fg = lookup(p, masks, poses, intrinsics)
-        fg1 = torch.gather(dilated, 1, flat) & seen
-        rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))
-        n_seen = seen.sum(0).clamp(min=1).float()
-        w = fg.float()[..., None]
-        n_fg = w.sum(0).clamp(min=1)
-        mean = (rgb * w).sum(0) / n_fg
-        spread = (((rgb - mean) ** 2 * w).sum(0) / n_fg).mean(-1).sqrt()
-        background = (seen & ~fg1).sum(0)
-        out.append(torch.stack([seen.sum(0) / v, fg.sum(0) / n_seen, fg1.sum(0) / n_seen, (background == 0).float(),
-                                (background <= 1).float(), mean[:, 0], mean[:, 1], mean[:, 2], spread, fg.sum(0) / v]))
-    return torch.cat(out, 1)
-
-
-class OccupancyNet(nn.Module):
-    """(F, X, Y, Z) features -> (X, Y, Z) occupancy logits: 3x3x3 convolutions, dilated 1, 2, 4, 8, 1 (a receptive
-    field 33 voxels across), ``width`` channels, ReLU."""
-
-    def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4, 8, 1)):
-        super().__init__()
-        layers: list[nn.Module] = []
-        channels = N_FEATURES
-        for d in dilations:
-            layers += [nn.Conv3d(channels, width, 3, padding=d, dilation=d), nn.ReLU()]
-            channels = width
-        self.net = nn.Sequential(*layers, nn.Conv3d(channels, 1, 1))
-
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.net(features[None])[0, 0]
-
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, mean_colour, silhouettes, visual_hull  # noqa: E402
+from nerfmeta.priors.occupancy import OccupancyNet, learned_grid_start, occupancy_inputs  # noqa: E402
+from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start, load_occupied_start  # noqa: E402
 
 def coarse_model(scene):
     """The scratch grid's model for ``scene`` (its coarse grid is the one every arm starts)."""
@@ -115,19 +68,15 @@ def true_distance(scene_path: Path, scene, model) -> torch.Tensor:
     return d * norm.scale / model.voxel
 
 
-def volume(scene_path: Path, *, truth: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """A scene's features (F, X, Y, Z) on the coarse grid, the hull the network may keep, and the ``truth:1`` target."""
+def volume(scene_path: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A generated scene's network input on the coarse grid (:func:`~nerfmeta.priors.occupancy.occupancy_inputs`:
+    features and the points the start may fill) and the ``truth:1`` occupancy it is trained to predict."""
     scene = load_scene(scene_path)
     model = coarse_model(scene)
-    points = grid_points(model.bounds, model.size).reshape(-1, 3)
-    train = scene.subset("train")
-    sil = silhouettes(train.images, train.alphas)
-    if sil.masks is None:
-        raise SystemExit(f"{scene_path}: {sil.reason}")
-    feats = point_features(points, sil.masks, train.images, train.poses, train.intrinsics).reshape(N_FEATURES, *model.size)
-    inside, seen = visual_hull(points, dilate_masks(sil.masks, NET_HULL_MARGIN_PX), train.poses, train.intrinsics)
-    hull = dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), 1)
-    return feats.float(), hull, (true_distance(scene_path, scene, model) < 1.0) if truth else None
+    inputs = occupancy_inputs(model, scene)
+    if isinstance(inputs, str):
+        raise SystemExit(f"{scene_path}: {inputs}")
+    return inputs[0], inputs[1], true_distance(scene_path, scene, model) < 1.0
 
 
 def train(args: argparse.Namespace) -> int:
@@ -140,7 +89,7 @@ def train(args: argparse.Namespace) -> int:
     for root in args.collections:
         collection = load_collection(Path(root))
         for record in collection.scenes:
-            data.append(volume(collection.root / record.path, truth=True))
+            data.append(volume(collection.root / record.path))
     print(f"{len(data)} scenes", flush=True)
     net = OccupancyNet(args.width)
     opt = torch.optim.Adam(net.parameters(), lr=2e-3)
@@ -161,7 +110,7 @@ def train(args: argparse.Namespace) -> int:
 
 
 def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
-    """(N,) bool: the coarse points the arm ``truth:D``, ``hull:M:K`` or ``net:WEIGHTS:TAU`` starts occupied."""
+    """(N,) bool: the coarse points the arm ``truth:D`` or ``hull:M:K`` starts occupied."""
     kind, *params = arm.split(":")
     if kind == "truth":
         return (true_distance(scene_path, scene, model) < float(params[0])).reshape(-1)
@@ -171,14 +120,7 @@ def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
         points = grid_points(model.bounds, model.size).reshape(-1, 3)
         inside, seen = visual_hull(points, dilate_masks(sil.masks, int(params[0])), train.poses, train.intrinsics)
         return dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), int(params[1])).reshape(-1)
-    if kind == "net":
-        state = torch.load(params[0])
-        net = OccupancyNet(state["net.0.weight"].shape[0])
-        net.load_state_dict(state)
-        feats, hull, _ = volume(scene_path, truth=False)
-        with torch.no_grad():
-            return ((torch.sigmoid(net(feats)) > float(params[1])) & hull).reshape(-1)
-    raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS:TAU")
+    raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS[:TAU]")
 
 
 def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
@@ -189,6 +131,11 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
     model = build_model("grid", dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS), scene.bounds, seed=0)
     if arm == "carve":
         return model, carve_grid_start(model, scene, background).reason
+    if arm.startswith("net:"):
+        weights, _, tau = arm[4:].partition(":")
+        report = learned_grid_start(model, scene, background, OccupancyNet.from_state(torch.load(weights)),
+                                    **({"threshold": float(tau)} if tau else {}))
+        return model, f"{report.reason}, built in {report.build_s:.2f} s"
     t0 = time.perf_counter()
     occ = occupied_points(arm, scene_path, scene, model)
     train = scene.subset("train")
@@ -196,9 +143,7 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
     masks = silhouettes(train.images, train.alphas).masks
     rgb = torch.where(occ[:, None], mean_colour(points, masks, train.images, train.poses, train.intrinsics, background),
                       background)
-    step = model.config.stepsize * model.voxel
-    sigma = torch.where(occ, sigma_for_alpha(HULL_ALPHA, step), sigma_for_alpha(EMPTY_ALPHA, step))
-    model.load_coarse_start(sigma.view(model.size).float(), rgb.t().reshape(3, *model.size).float())
+    load_occupied_start(model, occ, rgb)
     return model, f"{100 * float(occ.float().mean()):.1f}% of the coarse grid occupied, built in {time.perf_counter() - t0:.2f} s"
 
 

@@ -54,6 +54,18 @@ def sigma_for_alpha(alpha: float, step: float) -> float:
     return -math.log1p(-alpha) / step
 
 
+def load_occupied_start(model, occupied: torch.Tensor, rgb: torch.Tensor, unknown: torch.Tensor | None = None) -> None:
+    """Load a start into ``model``'s coarse grids: (N,) bool ``occupied`` coarse points at :data:`HULL_ALPHA` a step with
+    their (N, 3) ``rgb``, ``unknown`` ones at scratch's alpha, the rest at :data:`EMPTY_ALPHA` (N: the coarse points in
+    ``grid_points`` order)."""
+    step = model.config.stepsize * model.voxel
+    empty = torch.full(occupied.shape, sigma_for_alpha(EMPTY_ALPHA, step), device=occupied.device)
+    if unknown is not None:
+        empty = torch.where(unknown, sigma_for_alpha(model.config.coarse_alpha_init, step), empty)
+    sigma = torch.where(occupied, sigma_for_alpha(HULL_ALPHA, step), empty)
+    model.load_coarse_start(sigma.view(model.size), rgb.t().reshape(3, *model.size))
+
+
 def carve_blocker(model, scene: Scene) -> str:
     """Why ``model`` (a voxel grid) cannot be carved for ``scene`` before looking at its images ("" when it can).
 
@@ -85,10 +97,7 @@ def carve_grid_start(model, scene: Scene, background: torch.Tensor) -> StartRepo
                    train.poses.to(device), train.intrinsics.to(device), background.to(device), voxel=model.voxel)
     if not isinstance(result, CarveStart):
         return StartReport(False, "carve", result.reason, round(time.perf_counter() - t0, 4), {"source": result.source})
-    step = model.config.stepsize * model.voxel
-    empty = torch.where(result.unknown, sigma_for_alpha(model.config.coarse_alpha_init, step), sigma_for_alpha(EMPTY_ALPHA, step))
-    sigma = torch.where(result.occupied, sigma_for_alpha(HULL_ALPHA, step), empty)
-    model.load_coarse_start(sigma.view(model.size), result.rgb.t().reshape(3, *model.size))
+    load_occupied_start(model, result.occupied, result.rgb, result.unknown)
     figures = {"source": result.silhouettes.source, "hull_fraction": round(result.hull_fraction, 4),
                "background": result.silhouettes.background, "views": train.n_views, "margin_px": result.margin_px,
                "unknown_fraction": round(float(result.unknown.float().mean()), 4)}

@@ -1,0 +1,120 @@
+"""A learned occupancy start: which coarse voxels a new scene fills, predicted from its own posed views.
+
+The carved start (:mod:`nerfmeta.priors.carve`) fills the visual hull, which holds whatever no silhouette cuts away:
+a lamp's shade, a mug's inside, the space under a table top. Started from the *true* occupancy instead, the same
+start ends above the scratch grid on every design scene at 128 px (BENCHMARKS.md, *Grid priors: what a right shape is
+worth*). Here a small 3-D CNN (:class:`OccupancyNet`) guesses that occupancy from per-voxel multi-view features
+(:func:`point_features`), trained over generated collections whose exact shapes are known
+(``scripts/probe_occupancy_start.py train``). Everything works on the coarse grid's points in the scene's loaded
+frame, as the carve does. It is measured, not routed: no ``--init`` reaches it yet.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+import torch.nn as nn
+
+from nerfmeta.data.scene import Scene
+from nerfmeta.fields.grid_ops import dilate, grid_points
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, mean_colour, silhouettes, visual_hull
+from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
+
+N_FEATURES = 10
+"""Features per point (:func:`point_features`)."""
+ALLOWED_MARGIN_PX = 2
+"""The start keeps only points of the visual hull with masks dilated this many pixels, grown one voxel in 3-D."""
+THRESHOLD = 0.1
+"""A point starts occupied when the network gives it at least this probability (recall first: a point started empty
+behind a filled one is never sampled again)."""
+
+
+def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,
+                   intrinsics: torch.Tensor, chunk: int = 1 << 15) -> torch.Tensor:
+    """(F, N) features of (N, 3) points from (V, H, W) foreground masks and (V, H, W, 3) images.
+
+    Per point: the fraction of views that see it; of those, the fractions on foreground (the masks as they are, and
+    dilated a pixel); whether no view / at most one view shows background there; the mean colour over the views on
+    foreground (3) and its RMS spread; the fraction of all views on foreground.
+    """
+    v = masks.shape[0]
+    dilated = dilate_masks(masks, 1).reshape(v, -1)
+    flat_images = images.reshape(v, -1, 3)
+    out = []
+    for p in points.split(chunk):
+        flat, seen, fg = lookup(p, masks, poses, intrinsics)
+        fg1 = torch.gather(dilated, 1, flat) & seen
+        rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))
+        n_seen = seen.sum(0).clamp(min=1).float()
+        w = fg.float()[..., None]
+        n_fg = w.sum(0).clamp(min=1)
+        mean = (rgb * w).sum(0) / n_fg
+        spread = (((rgb - mean) ** 2 * w).sum(0) / n_fg).mean(-1).sqrt()
+        background = (seen & ~fg1).sum(0)
+        out.append(torch.stack([seen.sum(0) / v, fg.sum(0) / n_seen, fg1.sum(0) / n_seen, (background == 0).float(),
+                                (background <= 1).float(), mean[:, 0], mean[:, 1], mean[:, 2], spread, fg.sum(0) / v]))
+    return torch.cat(out, 1)
+
+
+class OccupancyNet(nn.Module):
+    """(F, X, Y, Z) features -> (X, Y, Z) occupancy logits: 3x3x3 convolutions dilated 1, 2, 4, 8, 1 (a receptive
+    field 33 voxels across), ``width`` channels, ReLU, then a 1x1x1 convolution."""
+
+    def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4, 8, 1)):
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = N_FEATURES
+        for d in dilations:
+            layers += [nn.Conv3d(channels, width, 3, padding=d, dilation=d), nn.ReLU()]
+            channels = width
+        self.net = nn.Sequential(*layers, nn.Conv3d(channels, 1, 1))
+
+    @classmethod
+    def from_state(cls, state: dict[str, torch.Tensor]) -> "OccupancyNet":
+        """The network of a saved ``state_dict`` (its width read from the first layer)."""
+        net = cls(state["net.0.weight"].shape[0])
+        net.load_state_dict(state)
+        return net.eval()
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features[None])[0, 0]
+
+
+def occupancy_inputs(model, scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | str:
+    """The network's input on ``model``'s coarse grid, (F, X, Y, Z) features, the (X, Y, Z) points it may fill and the
+    training views' (V, H, W) foreground masks; or why the views give none (no silhouettes)."""
+    train, device = scene.subset("train"), model.bounds.device
+    images, poses, intrinsics = train.images.to(device), train.poses.to(device), train.intrinsics.to(device)
+    sil = silhouettes(images, None if train.alphas is None else train.alphas.to(device))
+    if sil.masks is None:
+        return sil.reason
+    points = grid_points(model.bounds, model.size).reshape(-1, 3)
+    feats = point_features(points, sil.masks, images, poses, intrinsics)
+    inside, seen = visual_hull(points, dilate_masks(sil.masks, ALLOWED_MARGIN_PX), poses, intrinsics)
+    allowed = dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), 1)
+    return feats.reshape(N_FEATURES, *model.size).float(), allowed, sil.masks
+
+
+def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
+                       threshold: float = THRESHOLD) -> StartReport:
+    """Start ``model``'s coarse stage from ``net``'s occupancy of ``scene`` (the carve's densities and mean colours on
+    the points it fills); leave it untouched, with the reason, where the scene cannot be (as :func:`carve_blocker`)."""
+    t0 = time.perf_counter()
+    inputs = carve_blocker(model, scene) or occupancy_inputs(model, scene)
+    if isinstance(inputs, str):
+        return StartReport(False, "occupancy", f"no learned start: {inputs}", round(time.perf_counter() - t0, 4), {})
+    feats, allowed, masks = inputs
+    with torch.no_grad():
+        occupied = ((torch.sigmoid(net.to(feats.device)(feats)) >= threshold) & allowed).reshape(-1)
+    train, device = scene.subset("train"), model.bounds.device
+    images = train.images.to(device)
+    points = grid_points(model.bounds, model.size).reshape(-1, 3)
+    rgb = torch.where(occupied[:, None], mean_colour(points, masks, images, train.poses.to(device),
+                                                     train.intrinsics.to(device), background.to(device)),
+                      background.to(device))
+    load_occupied_start(model, occupied, rgb)
+    fraction = float(occupied.float().mean())
+    return StartReport(True, "occupancy", f"the coarse grid starts from the learned occupancy ({100 * fraction:.1f}% of it)",
+                       round(time.perf_counter() - t0, 4), {"occupied_fraction": round(fraction, 4),
+                                                            "threshold": threshold, "views": train.n_views})
