@@ -41,7 +41,7 @@ from nerfmeta.geometry.extract import grid_values, surface_function  # noqa: E40
 from nerfmeta.geometry.load import load_run_model  # noqa: E402
 from nerfmeta.geometry.metrics import GeometryConfig  # noqa: E402
 from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame  # noqa: E402
-from nerfmeta.geometry.truth import ground_truth, scene_sdf_of  # noqa: E402
+from nerfmeta.geometry.truth import ground_truth, in_loaded_frame, scene_sdf_of  # noqa: E402
 
 RECIPE = {"view_dependent": False, "init_variance": 0.1, "variance_lr": 1e-2}
 """The SDF settings of BENCHMARKS.md's 10-minute fits, which ``--set`` overrides."""
@@ -95,10 +95,10 @@ def main() -> int:
     density, scene = load_run_model(args.density_run)
     exact, _ = scene_sdf_of(args.scene)
     box = scene.bounds.float()
-    norm = scene.normalization
+    exact_loaded = in_loaded_frame(exact, scene.normalization)
 
     def truth(points: torch.Tensor) -> torch.Tensor:
-        return (exact(norm.invert_points(points.double())) * norm.scale).float()
+        return exact_loaded(points).float()
 
     target_sdf = truth if args.truth else level_set_target(density, box, args.resolution)
 

@@ -48,9 +48,9 @@ from nerfmeta.fields.registry import build_model  # noqa: E402
 from nerfmeta.fields.voxel_grid import VoxelGridConfig  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
-from nerfmeta.geometry.truth import scene_sdf_of  # noqa: E402
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, mean_colour, silhouettes, visual_hull  # noqa: E402
-from nerfmeta.priors.occupancy import OccupancyNet, learned_grid_start, occupancy_inputs  # noqa: E402
+from nerfmeta.geometry.truth import in_loaded_frame, scene_sdf_of  # noqa: E402
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, start_colours, visual_hull  # noqa: E402
+from nerfmeta.priors.occupancy import OccupancyNet, grid_views, learned_grid_start, occupancy_inputs  # noqa: E402
 from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start, load_occupied_start  # noqa: E402
 
 def coarse_model(scene):
@@ -60,12 +60,10 @@ def coarse_model(scene):
 
 def true_distance(scene_path: Path, scene, model) -> torch.Tensor:
     """(X, Y, Z) exact signed distance of a generated scene at the coarse grid's points, in coarse voxels."""
-    exact, _ = scene_sdf_of(scene_path)
-    points = grid_points(model.bounds, model.size).reshape(-1, 3).double()
-    norm = scene.normalization
+    exact = in_loaded_frame(scene_sdf_of(scene_path)[0], scene.normalization)
+    points = grid_points(model.bounds, model.size).reshape(-1, 3)
     with torch.no_grad():
-        d = torch.cat([exact(norm.invert_points(c)) for c in points.split(1 << 15)]).reshape(model.size)
-    return d * norm.scale / model.voxel
+        return torch.cat([exact(c) for c in points.split(1 << 15)]).reshape(model.size) / model.voxel
 
 
 def volume(scene_path: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -73,10 +71,10 @@ def volume(scene_path: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     features and the points the start may fill) and the ``truth:1`` occupancy it is trained to predict."""
     scene = load_scene(scene_path)
     model = coarse_model(scene)
-    inputs = occupancy_inputs(model, scene)
-    if isinstance(inputs, str):
-        raise SystemExit(f"{scene_path}: {inputs}")
-    return inputs[0], inputs[1], true_distance(scene_path, scene, model) < 1.0
+    views = grid_views(model, scene)
+    if isinstance(views, str):
+        raise SystemExit(f"{scene_path}: {views}")
+    return *occupancy_inputs(views, model.size), true_distance(scene_path, scene, model) < 1.0
 
 
 def train(args: argparse.Namespace) -> int:
@@ -115,20 +113,18 @@ def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
     if kind == "truth":
         return (true_distance(scene_path, scene, model) < float(params[0])).reshape(-1)
     if kind == "hull":
-        train = scene.subset("train")
-        sil = silhouettes(train.images, train.alphas)
-        points = grid_points(model.bounds, model.size).reshape(-1, 3)
-        inside, seen = visual_hull(points, dilate_masks(sil.masks, int(params[0])), train.poses, train.intrinsics)
+        views = grid_views(model, scene)
+        inside, seen = visual_hull(views.points, dilate_masks(views.masks, int(params[0])), views.poses, views.intrinsics)
         return dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), int(params[1])).reshape(-1)
     raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS[:TAU]")
 
 
 def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
     """The arm's model, started, and a note (what it occupied, how long building it took)."""
-    config = VoxelGridConfig().for_scene(scene)
     if arm == "scratch":
-        return build_model("grid", config, scene.bounds, seed=0), "no start"
-    model = build_model("grid", dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS), scene.bounds, seed=0)
+        return coarse_model(scene), "no start"
+    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), coarse_iters=CARVE_COARSE_ITERS)
+    model = build_model("grid", config, scene.bounds, seed=0)
     if arm == "carve":
         return model, carve_grid_start(model, scene, background).reason
     if arm.startswith("net:"):
@@ -138,12 +134,9 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
         return model, f"{report.reason}, built in {report.build_s:.2f} s"
     t0 = time.perf_counter()
     occ = occupied_points(arm, scene_path, scene, model)
-    train = scene.subset("train")
-    points = grid_points(model.bounds, model.size).reshape(-1, 3)
-    masks = silhouettes(train.images, train.alphas).masks
-    rgb = torch.where(occ[:, None], mean_colour(points, masks, train.images, train.poses, train.intrinsics, background),
-                      background)
-    load_occupied_start(model, occ, rgb)
+    views = grid_views(model, scene)
+    load_occupied_start(model, occ, start_colours(occ, views.points, views.masks, views.images, views.poses,
+                                                  views.intrinsics, background))
     return model, f"{100 * float(occ.float().mean()):.1f}% of the coarse grid occupied, built in {time.perf_counter() - t0:.2f} s"
 
 

@@ -71,7 +71,7 @@ def test_the_start_fills_what_the_network_says_within_the_hull_it_may_keep() -> 
     step = model.config.stepsize * model.voxel
     full = torch.isclose(sigma, torch.tensor(sigma_for_alpha(HULL_ALPHA, step)), rtol=1e-3)
     # ... but only inside the allowed region (the 2-pixel hull grown a voxel), which leaves the box's corners empty
-    _, allowed, _ = occupancy.occupancy_inputs(grid_model(), scene)
+    _, allowed = occupancy.occupancy_inputs(occupancy.grid_views(model, scene), model.size)
     assert torch.equal(full, allowed.reshape(-1)) and not bool(allowed.all())
     assert math.isclose(report.figures["occupied_fraction"], float(allowed.float().mean()), abs_tol=1e-4)
     inside, _ = visual_hull(pts, scene.subset("train").alphas > 0.5, scene.subset("train").poses, scene.subset("train").intrinsics)

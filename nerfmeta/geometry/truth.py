@@ -47,6 +47,15 @@ def scene_sdf_of(scene: str | os.PathLike) -> tuple[SdfFn, np.ndarray] | None:
     return None
 
 
+def in_loaded_frame(sdf: SdfFn, normalization) -> SdfFn:
+    """A scene file's exact ``sdf`` as a function of (N, 3) points of the *loaded* (normalised) scene, in its units:
+    the points mapped back to the file's frame (float64), the distances scaled as the scene was."""
+    def loaded(points: torch.Tensor) -> torch.Tensor:
+        return sdf(normalization.invert_points(points.double())) * normalization.scale
+
+    return loaded
+
+
 def project_to_zero_set(sdf: SdfFn, points: np.ndarray, h: float, steps: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """Move points (N, 3) onto ``sdf``'s zero set by Newton steps; return them and the unit gradients there."""
     p = torch.as_tensor(points, dtype=torch.float64)

@@ -218,6 +218,12 @@ def mean_colour(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor,
     return torch.cat(out)
 
 
+def start_colours(occupied: torch.Tensor, points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor,
+                  poses: torch.Tensor, intrinsics: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """(N, 3) a start's colours: :func:`mean_colour` on the (N,) ``occupied`` points, ``background`` (3,) elsewhere."""
+    return torch.where(occupied[:, None], mean_colour(points, masks, images, poses, intrinsics, background), background)
+
+
 def carve(points: torch.Tensor, images: torch.Tensor, alphas: torch.Tensor | None, poses: torch.Tensor,
           intrinsics: torch.Tensor, background: torch.Tensor, *, voxel: float = 0.0) -> CarveStart | Silhouettes:
     """The carved start on (N, 3) ``points`` from training views, or the :class:`Silhouettes` saying why not.
@@ -239,5 +245,5 @@ def carve(points: torch.Tensor, images: torch.Tensor, alphas: torch.Tensor | Non
     occupied, unknown = inside & (seen_fraction >= SEEN_FRACTION), inside & (seen_fraction < SEEN_FRACTION)
     if not bool(occupied.any()):
         return Silhouettes(None, "none", sil.background, f"{sil.reason}, but no grid point lies in every silhouette: not carved")
-    rgb = torch.where(occupied[:, None], mean_colour(points, sil.masks, images, poses, intrinsics, background), background)
+    rgb = start_colours(occupied, points, sil.masks, images, poses, intrinsics, background)
     return CarveStart(occupied, unknown, rgb, float(occupied.float().mean()), sil, margin)

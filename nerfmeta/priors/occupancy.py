@@ -12,13 +12,14 @@ frame, as the carve does. It is measured, not routed: no ``--init`` reaches it y
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 
 from nerfmeta.data.scene import Scene
 from nerfmeta.fields.grid_ops import dilate, grid_points
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, mean_colour, silhouettes, visual_hull
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, silhouettes, start_colours, visual_hull
 from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
 
 N_FEATURES = 10
@@ -81,19 +82,41 @@ class OccupancyNet(nn.Module):
         return self.net(features[None])[0, 0]
 
 
-def occupancy_inputs(model, scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | str:
-    """The network's input on ``model``'s coarse grid, (F, X, Y, Z) features, the (X, Y, Z) points it may fill and the
-    training views' (V, H, W) foreground masks; or why the views give none (no silhouettes)."""
+@dataclass(frozen=True)
+class GridViews:
+    """A coarse grid's points and the training views they are judged by, on the grid's device.
+
+    Attributes:
+        points: (N, 3) the coarse grid's points (``grid_points`` order) in the scene's loaded frame.
+        masks: (V, H, W) bool foreground of the training views.
+        images: (V, H, W, 3); poses: (V, 4, 4); intrinsics: (V, 4).
+    """
+
+    points: torch.Tensor
+    masks: torch.Tensor
+    images: torch.Tensor
+    poses: torch.Tensor
+    intrinsics: torch.Tensor
+
+
+def grid_views(model, scene: Scene) -> GridViews | str:
+    """``model``'s coarse points and ``scene``'s training views, or why the views have no silhouettes."""
     train, device = scene.subset("train"), model.bounds.device
-    images, poses, intrinsics = train.images.to(device), train.poses.to(device), train.intrinsics.to(device)
+    images = train.images.to(device)
     sil = silhouettes(images, None if train.alphas is None else train.alphas.to(device))
     if sil.masks is None:
         return sil.reason
-    points = grid_points(model.bounds, model.size).reshape(-1, 3)
-    feats = point_features(points, sil.masks, images, poses, intrinsics)
-    inside, seen = visual_hull(points, dilate_masks(sil.masks, ALLOWED_MARGIN_PX), poses, intrinsics)
-    allowed = dilate((inside & (seen >= SEEN_FRACTION)).view(model.size), 1)
-    return feats.reshape(N_FEATURES, *model.size).float(), allowed, sil.masks
+    return GridViews(grid_points(model.bounds, model.size).reshape(-1, 3), sil.masks, images, train.poses.to(device),
+                     train.intrinsics.to(device))
+
+
+def occupancy_inputs(views: GridViews, size: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The network's input on a coarse grid of ``size`` corners, (F, X, Y, Z) features, and the (X, Y, Z) points it
+    may fill (the visual hull with :data:`ALLOWED_MARGIN_PX` of mask margin, grown a voxel)."""
+    feats = point_features(views.points, views.masks, views.images, views.poses, views.intrinsics)
+    inside, seen = visual_hull(views.points, dilate_masks(views.masks, ALLOWED_MARGIN_PX), views.poses, views.intrinsics)
+    allowed = dilate((inside & (seen >= SEEN_FRACTION)).view(size), 1)
+    return feats.reshape(N_FEATURES, *size).float(), allowed
 
 
 def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
@@ -101,20 +124,16 @@ def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: Occup
     """Start ``model``'s coarse stage from ``net``'s occupancy of ``scene`` (the carve's densities and mean colours on
     the points it fills); leave it untouched, with the reason, where the scene cannot be (as :func:`carve_blocker`)."""
     t0 = time.perf_counter()
-    inputs = carve_blocker(model, scene) or occupancy_inputs(model, scene)
-    if isinstance(inputs, str):
-        return StartReport(False, "occupancy", f"no learned start: {inputs}", round(time.perf_counter() - t0, 4), {})
-    feats, allowed, masks = inputs
+    views = carve_blocker(model, scene) or grid_views(model, scene)
+    if isinstance(views, str):
+        return StartReport(False, "occupancy", f"no learned start: {views}", round(time.perf_counter() - t0, 4), {})
+    feats, allowed = occupancy_inputs(views, model.size)
     with torch.no_grad():
         occupied = ((torch.sigmoid(net.to(feats.device)(feats)) >= threshold) & allowed).reshape(-1)
-    train, device = scene.subset("train"), model.bounds.device
-    images = train.images.to(device)
-    points = grid_points(model.bounds, model.size).reshape(-1, 3)
-    rgb = torch.where(occupied[:, None], mean_colour(points, masks, images, train.poses.to(device),
-                                                     train.intrinsics.to(device), background.to(device)),
-                      background.to(device))
+    rgb = start_colours(occupied, views.points, views.masks, views.images, views.poses, views.intrinsics,
+                        background.to(occupied.device))
     load_occupied_start(model, occupied, rgb)
     fraction = float(occupied.float().mean())
     return StartReport(True, "occupancy", f"the coarse grid starts from the learned occupancy ({100 * fraction:.1f}% of it)",
                        round(time.perf_counter() - t0, 4), {"occupied_fraction": round(fraction, 4),
-                                                            "threshold": threshold, "views": train.n_views})
+                                                            "threshold": threshold, "views": views.images.shape[0]})
