@@ -188,10 +188,9 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
         if arm == "carve":
             report = carve_grid_start(model, scene, background)
         else:
-            from nerfmeta.priors.occupancy import OccupancyNet, learned_grid_start
+            from nerfmeta.priors.occupancy import learned_grid_start, load_occupancy_net
 
-            net = OccupancyNet.from_state(torch.load(occupancy_net))
-            report = learned_grid_start(model, scene, background, net)
+            report = learned_grid_start(model, scene, background, load_occupancy_net(occupancy_net))
         note = report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
             model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
@@ -343,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default="", help="comma-separated scene names (default: all)")
     p.add_argument("--workers", type=int, default=2, help="scenes fitted at once (one torch thread each)")
     p.add_argument("--report", action="store_true", help="only print the tables of OUT/results.json")
-    p.add_argument("--occupancy-net", type=Path, default=None, metavar="NET.pt",
+    p.add_argument("--occupancy-net", type=Path, default=None, metavar="NET.safetensors",
                    help="add the learned occupancy start as an arm (weights from scripts/probe_occupancy_start.py train)")
     args = p.parse_args(argv)
     if args.report:
@@ -353,6 +352,14 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(tables(doc["results"], tuple(doc["arms"]), any("mlp_figures" in r for r in doc["results"].values()))))
         return 0
     torch.set_num_threads(1)
+    if args.occupancy_net is not None:  # a bad file named before any fit starts
+        from nerfmeta.errors import ConfigError
+        from nerfmeta.priors.occupancy import load_occupancy_net
+
+        try:
+            load_occupancy_net(args.occupancy_net)
+        except ConfigError as err:
+            p.error(str(err))
     arms = tuple(a for a in args.arms.split(",") if a) + (("occupancy",) if args.occupancy_net else ())
     load_before = os.getloadavg()
     t_start = time.perf_counter()

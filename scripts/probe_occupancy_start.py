@@ -22,7 +22,7 @@ it measured.
 
 Usage::
 
-    .venv/bin/python scripts/probe_occupancy_start.py train COLLECTION [COLLECTION ...] --out NET.pt [--width 16] [--steps 2000]
+    .venv/bin/python scripts/probe_occupancy_start.py train COLLECTION [COLLECTION ...] --out NET.safetensors [--width 16] [--steps 2000]
     .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000]
 """
 
@@ -50,7 +50,9 @@ from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
 from nerfmeta.geometry.truth import in_loaded_frame, scene_sdf_of  # noqa: E402
 from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, start_colours, visual_hull  # noqa: E402
-from nerfmeta.priors.occupancy import OccupancyNet, grid_views, learned_grid_start, occupancy_inputs  # noqa: E402
+from nerfmeta.errors import ConfigError  # noqa: E402
+from nerfmeta.io import save_tensors  # noqa: E402
+from nerfmeta.priors.occupancy import OccupancyNet, grid_views, learned_grid_start, load_occupancy_net, occupancy_inputs  # noqa: E402
 from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start, load_occupied_start  # noqa: E402
 
 def coarse_model(scene):
@@ -81,6 +83,8 @@ def train(args: argparse.Namespace) -> int:
     """Fit :class:`OccupancyNet` to every scene of the collections (weighted BCE inside the hull, recall first)."""
     from nerfmeta.collection.generate import load_collection
 
+    if args.out.exists():  # never over a file this command did not write now
+        raise SystemExit(f"{args.out}: already exists; name a new file for the network")
     torch.manual_seed(args.seed)
     rng = random.Random(args.seed)
     data = []
@@ -103,7 +107,7 @@ def train(args: argparse.Namespace) -> int:
         opt.step()
         if step % 200 == 0 or step == args.steps - 1:
             print(json.dumps({"step": step, "loss": round(loss.item(), 4), "s": round(time.perf_counter() - t0, 1)}), flush=True)
-    torch.save(net.state_dict(), args.out)
+    save_tensors(args.out, net.state_dict())  # atomically
     return 0
 
 
@@ -129,7 +133,7 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
         return model, carve_grid_start(model, scene, background).reason
     if arm.startswith("net:"):
         weights, _, tau = arm[4:].partition(":")
-        report = learned_grid_start(model, scene, background, OccupancyNet.from_state(torch.load(weights)),
+        report = learned_grid_start(model, scene, background, load_occupancy_net(weights),
                                     **({"threshold": float(tau)} if tau else {}))
         return model, f"{report.reason}, built in {report.build_s:.2f} s"
     t0 = time.perf_counter()
@@ -180,7 +184,10 @@ def main() -> int:
     f.add_argument("--marks", type=int, nargs="+", default=[50, 100, 200, 400, 700, 1000])
     args = ap.parse_args()
     torch.set_num_threads(1)
-    return train(args) if args.command == "train" else fit_arm(args)
+    try:
+        return train(args) if args.command == "train" else fit_arm(args)
+    except ConfigError as err:
+        raise SystemExit(str(err)) from None
 
 
 if __name__ == "__main__":

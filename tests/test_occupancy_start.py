@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 import nerfmeta.priors.occupancy as occupancy
+from nerfmeta.errors import ConfigError
 from nerfmeta.fields.grid_ops import grid_points
+from nerfmeta.io import save_tensors
 from nerfmeta.priors.carve import visual_hull
 from nerfmeta.priors.start import EMPTY_ALPHA, HULL_ALPHA, sigma_for_alpha
 from test_carve import composite, grid_model, sphere_views, tiny_scene
@@ -97,3 +100,18 @@ def test_a_busy_scene_gets_no_start_and_says_why() -> None:
     report = occupancy.learned_grid_start(model, scene, torch.ones(3), constant_net(10.0))
     assert not report.applied and report.reason.startswith("no learned start:") and "not a uniform background" in report.reason
     assert all(torch.equal(before[n], p) for n, p in model.named_parameters())
+
+
+def test_a_saved_network_reloads_and_a_bad_file_is_one_line_naming_it(tmp_path) -> None:
+    net = occupancy.OccupancyNet(width=3)
+    save_tensors(tmp_path / "net.safetensors", net.state_dict())
+    x = torch.rand(occupancy.N_FEATURES, 4, 4, 4)
+    assert torch.equal(occupancy.load_occupancy_net(tmp_path / "net.safetensors")(x), net(x))
+    (tmp_path / "garbage.safetensors").write_text("not tensors")
+    save_tensors(tmp_path / "other.safetensors", {"weight": torch.zeros(2)})
+    for name, why in (("absent.safetensors", "no such occupancy network file"),
+                      ("garbage.safetensors", "not readable as safetensors"),
+                      ("other.safetensors", "not an occupancy network")):
+        with pytest.raises(ConfigError) as err:
+            occupancy.load_occupancy_net(tmp_path / name)
+        assert str(err.value).startswith(f"{tmp_path / name}: {why}") and "\n" not in str(err.value)

@@ -11,6 +11,7 @@ frame, as the carve does. It is measured, not routed: no ``--init`` reaches it y
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -18,7 +19,9 @@ import torch
 import torch.nn as nn
 
 from nerfmeta.data.scene import Scene
+from nerfmeta.errors import ConfigError, message_line
 from nerfmeta.fields.grid_ops import dilate, grid_points
+from nerfmeta.io import load_tensors
 from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, silhouettes, start_colours, visual_hull
 from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
 
@@ -80,6 +83,21 @@ class OccupancyNet(nn.Module):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return self.net(features[None])[0, 0]
+
+
+def load_occupancy_net(path: str | os.PathLike) -> OccupancyNet:
+    """The :class:`OccupancyNet` saved (:func:`~nerfmeta.io.save_tensors`) at ``path``; a one-line
+    :class:`~nerfmeta.errors.ConfigError` naming the file when it is missing, unreadable or not such a network."""
+    try:
+        state = load_tensors(path)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such occupancy network file") from None
+    except Exception as err:  # OSError, or safetensors' own error types
+        raise ConfigError(f"{path}: not readable as safetensors ({message_line(err)})") from None
+    try:
+        return OccupancyNet.from_state(state)
+    except (KeyError, RuntimeError, IndexError) as err:  # another network's tensors
+        raise ConfigError(f"{path}: not an occupancy network ({message_line(err)})") from None
 
 
 @dataclass(frozen=True)
