@@ -194,11 +194,16 @@ def visual_hull(points: torch.Tensor, masks: torch.Tensor, poses: torch.Tensor, 
     inside, seen_fraction = [], []
     for p in points.split(chunk):
         _, seen, fg = lookup(p, masks, poses, intrinsics)
-        n_seen = seen.sum(0)
-        allowed = torch.clamp(n_seen // MISS_EVERY, max=misses)
-        inside.append((n_seen > 0) & ((seen & ~fg).sum(0) <= allowed))
-        seen_fraction.append(n_seen.float() / masks.shape[0])
+        inside.append(in_hull(seen, fg, misses=misses))
+        seen_fraction.append(seen.sum(0).float() / masks.shape[0])
     return torch.cat(inside), torch.cat(seen_fraction)
+
+
+def in_hull(seen: torch.Tensor, fg: torch.Tensor, *, misses: int = HULL_MISSES) -> torch.Tensor:
+    """(N,) bool :func:`visual_hull`'s test from (V, N) bool ``seen`` and ``fg`` (seen on foreground)."""
+    n_seen = seen.sum(0)
+    allowed = torch.clamp(n_seen // MISS_EVERY, max=misses)
+    return (n_seen > 0) & ((seen & ~fg).sum(0) <= allowed)
 
 
 def mean_colour(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,

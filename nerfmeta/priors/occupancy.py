@@ -5,8 +5,9 @@ a lamp's shade, a mug's inside, the space under a table top. Started from the *t
 start ends above the scratch grid on every design scene at 128 px (BENCHMARKS.md, *Grid priors: what a right shape is
 worth*). Here a small 3-D CNN (:class:`OccupancyNet`) guesses that occupancy from per-voxel multi-view features
 (:func:`point_features`), trained over generated collections whose exact shapes are known
-(``scripts/probe_occupancy_start.py train``). Everything works on the coarse grid's points in the scene's loaded
-frame, as the carve does. It is measured, not routed: no ``--init`` reaches it yet.
+(:mod:`pretrain.occupancy`; the model zoo's ``occupancy`` entry). Everything works on the coarse grid's points in the
+scene's loaded frame, as the carve does. ``nerfmeta fit SCENE --init occupancy`` uses it; ``--init auto`` does not
+route to it (BENCHMARKS.md says where it still falls behind the scratch grid).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError, message_line
 from nerfmeta.fields.grid_ops import dilate, grid_points
 from nerfmeta.io import load_tensors
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, lookup, silhouettes, start_colours, visual_hull
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, in_hull, lookup, silhouettes
 from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
 
 N_FEATURES = 10
@@ -42,23 +43,25 @@ def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tens
     dilated a pixel); whether no view / at most one view shows background there; the mean colour over the views on
     foreground (3) and its RMS spread; the fraction of all views on foreground.
     """
-    v = masks.shape[0]
-    dilated = dilate_masks(masks, 1).reshape(v, -1)
-    flat_images = images.reshape(v, -1, 3)
-    out = []
-    for p in points.split(chunk):
-        flat, seen, fg = lookup(p, masks, poses, intrinsics)
-        fg1 = torch.gather(dilated, 1, flat) & seen
-        rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))
-        n_seen = seen.sum(0).clamp(min=1).float()
-        w = fg.float()[..., None]
-        n_fg = w.sum(0).clamp(min=1)
-        mean = (rgb * w).sum(0) / n_fg
-        spread = (((rgb - mean) ** 2 * w).sum(0) / n_fg).mean(-1).sqrt()
-        background = (seen & ~fg1).sum(0)
-        out.append(torch.stack([seen.sum(0) / v, fg.sum(0) / n_seen, fg1.sum(0) / n_seen, (background == 0).float(),
-                                (background <= 1).float(), mean[:, 0], mean[:, 1], mean[:, 2], spread, fg.sum(0) / v]))
-    return torch.cat(out, 1)
+    dilated, flat_images = dilate_masks(masks, 1).reshape(masks.shape[0], -1), images.reshape(masks.shape[0], -1, 3)
+    return torch.cat([_features(*lookup(p, masks, poses, intrinsics), dilated, flat_images) for p in points.split(chunk)], 1)
+
+
+def _features(flat: torch.Tensor, seen: torch.Tensor, fg: torch.Tensor, dilated: torch.Tensor,
+              flat_images: torch.Tensor) -> torch.Tensor:
+    """(F, n) :func:`point_features` of n points from their :func:`~nerfmeta.priors.carve.lookup` (V, n) ``flat``,
+    ``seen``, ``fg``, with the (V, H * W) masks ``dilated`` a pixel and (V, H * W, 3) ``flat_images``."""
+    v = flat.shape[0]
+    fg1 = torch.gather(dilated, 1, flat) & seen
+    rgb = torch.gather(flat_images, 1, flat[..., None].expand(-1, -1, 3))
+    n_seen = seen.sum(0).clamp(min=1).float()
+    w = fg.float()[..., None]
+    n_fg = w.sum(0).clamp(min=1)
+    mean = (rgb * w).sum(0) / n_fg
+    spread = (((rgb - mean) ** 2 * w).sum(0) / n_fg).mean(-1).sqrt()
+    background = (seen & ~fg1).sum(0)
+    return torch.stack([seen.sum(0) / v, fg.sum(0) / n_seen, fg1.sum(0) / n_seen, (background == 0).float(),
+                        (background <= 1).float(), mean[:, 0], mean[:, 1], mean[:, 2], spread, fg.sum(0) / v])
 
 
 class OccupancyNet(nn.Module):
@@ -128,12 +131,20 @@ def grid_views(model, scene: Scene) -> GridViews | str:
                      train.intrinsics.to(device))
 
 
-def occupancy_inputs(views: GridViews, size: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """The network's input on a coarse grid of ``size`` corners, (F, X, Y, Z) features, and the (X, Y, Z) points it
-    may fill (the visual hull with :data:`ALLOWED_MARGIN_PX` of mask margin, grown a voxel)."""
-    feats = point_features(views.points, views.masks, views.images, views.poses, views.intrinsics)
-    inside, seen = visual_hull(views.points, dilate_masks(views.masks, ALLOWED_MARGIN_PX), views.poses, views.intrinsics)
-    allowed = dilate((inside & (seen >= SEEN_FRACTION)).view(size), 1)
+def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 1 << 15) -> tuple[torch.Tensor, torch.Tensor]:
+    """The network's input on a coarse grid of ``size`` corners, (F, X, Y, Z) :func:`point_features`, and the
+    (X, Y, Z) points it may fill: the visual hull with :data:`ALLOWED_MARGIN_PX` of mask margin, grown a voxel.
+    One projection of the points serves both."""
+    v = views.masks.shape[0]
+    dilated, wide = (dilate_masks(views.masks, px).reshape(v, -1) for px in (1, ALLOWED_MARGIN_PX))
+    flat_images = views.images.reshape(v, -1, 3)
+    feats, inside = [], []
+    for p in views.points.split(chunk):
+        flat, seen, fg = lookup(p, views.masks, views.poses, views.intrinsics)
+        feats.append(_features(flat, seen, fg, dilated, flat_images))
+        inside.append(in_hull(seen, torch.gather(wide, 1, flat) & seen))
+    feats = torch.cat(feats, 1)
+    allowed = dilate((torch.cat(inside) & (feats[0] >= SEEN_FRACTION)).view(size), 1)
     return feats.reshape(N_FEATURES, *size).float(), allowed
 
 
@@ -148,9 +159,10 @@ def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: Occup
     feats, allowed = occupancy_inputs(views, model.size)
     with torch.no_grad():
         occupied = ((torch.sigmoid(net.to(feats.device)(feats)) >= threshold) & allowed).reshape(-1)
-    rgb = start_colours(occupied, views.points, views.masks, views.images, views.poses, views.intrinsics,
-                        background.to(occupied.device))
-    load_occupied_start(model, occupied, rgb)
+    feats = feats.reshape(N_FEATURES, -1)
+    # carve.start_colours from the features: their mean colour where a view shows the point on foreground
+    on_foreground = (occupied & (feats[9] > 0))[:, None]
+    load_occupied_start(model, occupied, torch.where(on_foreground, feats[5:8].t(), background.to(feats.device)))
     fraction = float(occupied.float().mean())
     return StartReport(True, "occupancy", f"the coarse grid starts from the learned occupancy ({100 * fraction:.1f}% of it)",
                        round(time.perf_counter() - t0, 4), {"occupied_fraction": round(fraction, 4),
