@@ -107,15 +107,17 @@ def load_init(folder: str | os.PathLike, *, expect_kind: str | None = None) -> S
     return SavedInit(folder, kind, backbone, config, structure, state, meta)
 
 
-FEED_FORWARD = ("carve",)
-"""Starts computed from the scene's own views, with no saved weights (``carve``: :mod:`nerfmeta.priors`, grid only)."""
+FEED_FORWARD = ("carve", "occupancy")
+"""Starts computed from the scene's own views, grid only (:mod:`nerfmeta.priors`): ``carve`` (the visual hull, no
+weights) and ``occupancy:NET`` (the learned occupancy start, whose network file is ``NET``; the command line's bare
+``occupancy`` names the model zoo's, :attr:`nerfmeta.zoo.Zoo.occupancy`)."""
 
 
 def parse_init(spec: str) -> tuple[str, Path | None]:
-    """``scratch`` | ``carve`` | ``category:DIR`` | ``meta:DIR`` -> (kind, folder)."""
-    if spec == "scratch" or spec in FEED_FORWARD:
+    """``scratch`` | ``carve`` | ``occupancy:NET`` | ``category:DIR`` | ``meta:DIR`` -> (kind, folder or file)."""
+    if spec in ("scratch", "carve"):
         return spec, None
     kind, sep, folder = spec.partition(":")
-    if not sep or kind not in KINDS or not folder:
-        raise ConfigError(f"--init {spec!r}: use scratch, carve, category:DIR or meta:DIR")
+    if not sep or kind not in KINDS + ("occupancy",) or not folder:
+        raise ConfigError(f"--init {spec!r}: use scratch, carve, occupancy[:NET.safetensors], category:DIR or meta:DIR")
     return kind, Path(folder)

@@ -1,4 +1,4 @@
-"""The model zoo: a classifier, category models and a meta-learned initialisation, hash-checked.
+"""The model zoo: a classifier, category models, a meta-learned initialisation and an occupancy network, hash-checked.
 
 A zoo folder (the shipped one is ``model_zoo/`` in the checkout, built by
 ``scripts/build_model_zoo``) holds::
@@ -9,6 +9,8 @@ A zoo folder (the shipped one is ``model_zoo/`` in the checkout, built by
     classifier/              a 'nerfmeta classifier train' folder (classifier.json, model.safetensors)
     category/CATEGORY/       a 'nerfmeta pretrain category' model (init.json, model.safetensors)
     meta/                    a 'nerfmeta meta-train' initialisation (init.json, model.safetensors)
+    occupancy/               the learned occupancy start's network (occupancy.json, model.safetensors;
+                             ``fit --init occupancy``, :mod:`nerfmeta.priors.occupancy`); older zoos lack it
 
 As torchvision does for pretrained weights, every file the zoo uses is listed in the manifest
 with its SHA-256, and :func:`load_zoo` refuses a zoo in which any listed file is missing or has
@@ -34,7 +36,7 @@ from nerfmeta.io import check_sha256, read_json_index, sha256_file, to_jsonable,
 
 ZOO_FORMAT = "nerfmeta-zoo-1"
 MANIFEST = "manifest.json"
-KINDS = ("classifier", "category", "meta")
+KINDS = ("classifier", "category", "meta", "occupancy")
 ENV = "NERFMETA_ZOO"
 PACKAGED_ZOOS = (Path(__file__).resolve().parent / "model_zoo", Path(__file__).resolve().parents[1] / "model_zoo")
 """Where the shipped zoo is, in order: inside the installed package (setup.cfg installs the checkout's
@@ -87,6 +89,11 @@ class Zoo:
     @property
     def meta(self) -> ZooEntry | None:
         return next((e for e in self.entries if e.kind == "meta"), None)
+
+    @property
+    def occupancy(self) -> ZooEntry | None:
+        """The learned occupancy start's network, if the zoo has one."""
+        return next((e for e in self.entries if e.kind == "occupancy"), None)
 
     @property
     def categories(self) -> dict[str, ZooEntry]:

@@ -1,4 +1,4 @@
-"""Building a model zoo (``scripts/build_model_zoo``): classifier, category models, meta-init, manifest.
+"""Building a model zoo (``scripts/build_model_zoo``): classifier, category models, meta-init, occupancy network, manifest.
 
 Reproducible from its seed: every step is a library call with a fixed recipe (:class:`ZooRecipe`)
 on a collection generated from the seed. Steps, each skipped when the work folder already holds
@@ -12,7 +12,10 @@ its finished output (so an interrupted build continues):
 3. pretrain one category model per known category (``nerfmeta pretrain category``);
 4. meta-train a Reptile initialisation of the same backbone over the known categories' training
    scenes (``nerfmeta meta-train``);
-5. copy what a fit needs (weights + JSON, plus the training curves) into the zoo folder and write
+5. train the learned occupancy start's network (:mod:`pretrain.occupancy`) on collections of its own (the known
+   categories at 64 and 128 px, seeds ``seed + 1`` and ``seed + 2``); :func:`add_occupancy` puts it into an
+   existing zoo without rebuilding the rest;
+6. copy what a fit needs (weights + JSON, plus the training curves) into the zoo folder and write
    ``manifest.json`` with every file's SHA-256, the recipes, the training data and the metrics
    (:mod:`nerfmeta.zoo`), built under a hidden name, verified, then renamed into place.
 """
@@ -35,7 +38,8 @@ import torch
 from nerfmeta.collection.generate import CollectionConfig, generate_collection, load_collection
 from nerfmeta.collection.render import RenderConfig
 from nerfmeta.fit.loop import FitConfig
-from nerfmeta.io import to_jsonable, write_json
+from nerfmeta.errors import ConfigError
+from nerfmeta.io import save_tensors, to_jsonable, write_json
 from nerfmeta.zoo import load_zoo, write_manifest, zoo_entry
 
 log = logging.getLogger(__name__)
@@ -94,11 +98,26 @@ class ZooRecipe:
     """Layers a category-route fit freezes by default (recorded in the manifest; see BENCHMARKS.md for how it was chosen)."""
     seed: int = 0
     """Seed of the collection and of every model."""
+    occupancy_resolutions: tuple[int, ...] = (64, 128)
+    """Image sizes of the occupancy network's training collections, one collection each, generated from seeds
+    ``seed + 1``, ``seed + 2``, ... (the known categories only; the network is measured on held-out seeds)."""
+    occupancy_scenes_per_category: int = 6
+    """Scenes per known category in each occupancy collection (every split is used: the target is exact geometry)."""
+    occupancy_views: int = 24
+    """Training views per scene of the occupancy collections (24 + 8, as ``scripts/bench_priors.py`` generates)."""
+    occupancy: dict[str, Any] = field(default_factory=dict)
+    """Overrides of :class:`pretrain.occupancy.OccupancyTrainConfig` (e.g. ``steps`` in tests)."""
 
     def collection_config(self) -> CollectionConfig:
         return CollectionConfig(categories=self.known + self.unseen, scenes_per_category=self.scenes_per_category, views=self.views,
                                 test_views=self.test_views, resolution=self.resolution, val_fraction=self.val_fraction,
                                 test_fraction=self.test_fraction, render=self.render, seed=self.seed)
+
+    def occupancy_collections(self) -> list[CollectionConfig]:
+        """The occupancy network's training collections (:attr:`occupancy_resolutions`)."""
+        return [CollectionConfig(categories=self.known, scenes_per_category=self.occupancy_scenes_per_category,
+                                 views=self.occupancy_views, test_views=self.test_views, resolution=r, render=self.render, seed=self.seed + 1 + k)
+                for k, r in enumerate(self.occupancy_resolutions)]
 
     def fit_defaults(self) -> dict[str, Any]:
         """What the manifest's ``fit`` records: the settings routed fits and their baselines share."""
@@ -150,11 +169,8 @@ def build_zoo(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike
     work.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
 
-    index = work / "collection" / "collection.json"
     with _step("collection", timings, work):
-        wanted = to_jsonable(recipe.collection_config())
-        if not (index.is_file() and json.loads(index.read_text()).get("config") == wanted):
-            generate_collection(recipe.collection_config(), work / "collection", overwrite=True)
+        index = _collection(recipe.collection_config(), work / "collection")
 
     clf_dir = work / "classifier"
     with _step("classifier", timings, work):
@@ -185,6 +201,9 @@ def build_zoo(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike
                                    "downscale": recipe.downscale, "meta_steps": recipe.meta_steps, "seed": recipe.seed, **recipe.meta})
             meta_train(config, index, meta_dir, overwrite=True)
 
+    with _step("occupancy", timings, work):
+        occupancy_dir = train_zoo_occupancy(recipe, work)
+
     staging = out.with_name(f".{out.name}.building")
     if staging.exists():
         shutil.rmtree(staging)
@@ -208,6 +227,7 @@ def build_zoo(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike
     summary = json.loads((meta_dir / "summary.json").read_text())
     entries.append(zoo_entry(staging, "meta", "meta", dst, weights, config=json.loads((meta_dir / "config.json").read_text()),
                              metrics={k: summary.get(k) for k in ("final_query_psnr", "held_out", "time_s", "meta_steps")}))
+    entries.append(occupancy_entry(staging, _copy(occupancy_dir, staging / "occupancy", OCCUPANCY_FILES)))
     coll = load_collection(index)
     manifest = write_manifest(
         staging, entries,
@@ -224,6 +244,102 @@ def build_zoo(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike
         shutil.rmtree(out)
     os.replace(staging, out)
     return out / manifest.name
+
+
+def _collection(config: CollectionConfig, folder: Path) -> Path:
+    """``folder/collection.json``, generated unless ``folder`` already holds a collection of ``config``."""
+    index = folder / "collection.json"
+    if not (index.is_file() and json.loads(index.read_text()).get("config") == to_jsonable(config)):
+        generate_collection(config, folder, overwrite=True)
+    return index
+
+
+OCCUPANCY_FORMAT = "nerfmeta-occupancy-1"
+OCCUPANCY_FILES = ("occupancy.json", "model.safetensors")
+"""The zoo's ``occupancy/`` entry: the training record and the network (:func:`nerfmeta.io.save_tensors`)."""
+
+
+def train_zoo_occupancy(recipe: ZooRecipe, work: Path) -> Path:
+    """``work/occupancy/`` with the recipe's occupancy network trained (:mod:`pretrain.occupancy`) on its own
+    collections (:meth:`ZooRecipe.occupancy_collections`), unless it already holds one of the same recipe."""
+    from nerfmeta.priors.occupancy import THRESHOLD
+    from pretrain.occupancy import OccupancyTrainConfig, occupancy_volume, train_occupancy_net
+
+    folder = work / "occupancy"
+    config = OccupancyTrainConfig(**{"seed": recipe.seed, **recipe.occupancy})
+    collections = recipe.occupancy_collections()
+    wanted = {"config": to_jsonable(config), "collections": to_jsonable(collections)}
+    index = folder / OCCUPANCY_FILES[0]
+    if index.is_file() and (folder / OCCUPANCY_FILES[1]).is_file():
+        doc = json.loads(index.read_text())
+        if {k: doc.get(k) for k in wanted} == wanted:
+            return folder
+    volumes = []
+    for c in collections:
+        coll = load_collection(_collection(c, work / f"occupancy_{c.resolution}px_seed{c.seed}"))
+        log.info("occupancy: features of %d scenes at %d px", len(coll.scenes), c.resolution)
+        volumes += [occupancy_volume(coll.root / r.path, distance=config.true_distance) for r in coll.scenes]
+    t0 = time.perf_counter()
+    net, losses = train_occupancy_net(volumes, config, on_log=lambda r: log.info("occupancy step %d: loss %.4f (%.0f s)",
+                                                                                  r["step"], r["loss"], r["s"]))
+    save_tensors(folder / OCCUPANCY_FILES[1], net.state_dict())
+    write_json(index, {"format": OCCUPANCY_FORMAT, **wanted, "threshold": THRESHOLD, "scenes": len(volumes),
+                       "weights": sum(p.numel() for p in net.parameters()), "train_s": round(time.perf_counter() - t0, 1),
+                       "training": losses})
+    return folder
+
+
+def occupancy_entry(root: Path, folder: Path) -> dict[str, Any]:
+    """The manifest entry of an occupancy folder made by :func:`train_zoo_occupancy` (inside ``root``)."""
+    doc = json.loads((folder / OCCUPANCY_FILES[0]).read_text())
+    return zoo_entry(root, "occupancy", "occupancy", folder, OCCUPANCY_FILES,
+                     config={k: doc[k] for k in ("config", "collections", "threshold")},
+                     metrics={"scenes": doc["scenes"], "weights": doc["weights"], "train_s": doc["train_s"],
+                              "final_loss": doc["training"][-1]["loss"]})
+
+
+def add_occupancy(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike, *, threads: int = 0) -> Path:
+    """Train the recipe's occupancy network (or reuse ``work``'s) and put it into the existing zoo ``out`` as its
+    ``occupancy`` entry, keeping every other entry; ``out`` must have been built with the same recipe otherwise.
+
+    Returns:
+        the path of the rewritten ``manifest.json``.
+
+    Raises:
+        ConfigError: ``out`` is not a valid zoo, was built with another recipe, or has an ``occupancy/`` folder that its
+            manifest does not list (not the build's to replace).
+    """
+    if threads:
+        torch.set_num_threads(threads)
+    out, work = Path(out), Path(work)
+    zoo = load_zoo(out)
+    mine, recorded = to_jsonable(recipe), zoo.manifest.get("recipe", {})
+    differ = [k for k in mine if k in recorded and recorded[k] != mine[k]]
+    if differ:
+        raise ConfigError(f"{out}: built with another recipe ({', '.join(differ)} differ); rebuild the whole zoo instead")
+    target, listed = out / "occupancy", any(e.kind == "occupancy" for e in zoo.entries)
+    if target.exists() and not listed:
+        raise ConfigError(f"{target}: exists but the zoo's manifest does not list it; move it away first")
+    work.mkdir(parents=True, exist_ok=True)
+    timings = {k: v for k, v in zoo.manifest.get("build_time_s", {}).items() if k != "total"}
+    with _step("occupancy", timings, work):
+        folder = train_zoo_occupancy(recipe, work)
+    staging, old = out / ".occupancy.building", out / ".occupancy.old"
+    for leftover in (staging, old):
+        if leftover.exists():
+            shutil.rmtree(leftover)
+    _copy(folder, staging, OCCUPANCY_FILES)
+    if target.exists():
+        os.replace(target, old)
+    os.replace(staging, target)
+    entries = [e for e in zoo.manifest["entries"] if e.get("kind") != "occupancy"] + [occupancy_entry(out, target)]
+    fields = {k: v for k, v in zoo.manifest.items() if k not in ("format", "entries", "total_bytes")}
+    manifest = write_manifest(out, entries, **{**fields, "recipe": mine,
+                                               "build_time_s": {**timings, "total": round(sum(timings.values()), 1)}})
+    if old.exists():
+        shutil.rmtree(old)
+    load_zoo(out)
+    return manifest
 
 
 def _copy(src: Path, dst: Path, files: tuple[str, ...]) -> Path:

@@ -23,6 +23,7 @@ deficit against scratch at any common evaluation time (scratch interpolated).
 Usage::
 
     flock /work/wt/bench.lock .venv/bin/python scripts/bench_priors.py --out runs/bench_priors --seed 11 [--workers 2] [--mlp]
+        [--occupancy-net zoo|NET.safetensors]
 """
 
 from __future__ import annotations
@@ -342,8 +343,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default="", help="comma-separated scene names (default: all)")
     p.add_argument("--workers", type=int, default=2, help="scenes fitted at once (one torch thread each)")
     p.add_argument("--report", action="store_true", help="only print the tables of OUT/results.json")
-    p.add_argument("--occupancy-net", type=Path, default=None, metavar="NET.safetensors",
-                   help="add the learned occupancy start as an arm (weights from scripts/probe_occupancy_start.py train)")
+    p.add_argument("--occupancy-net", default=None, metavar="NET.safetensors|zoo",
+                   help="add the learned occupancy start as an arm: 'zoo' for --zoo's network (what --init occupancy "
+                   "uses), or a file from scripts/probe_occupancy_start.py train")
     args = p.parse_args(argv)
     if args.report:
         doc = json.loads((args.out / "results.json").read_text())
@@ -355,8 +357,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.occupancy_net is not None:  # a bad file named before any fit starts
         from nerfmeta.errors import ConfigError
         from nerfmeta.priors.occupancy import load_occupancy_net
+        from nerfmeta.zoo import load_zoo
 
         try:
+            if args.occupancy_net == "zoo":
+                entry = load_zoo(args.zoo).occupancy
+                if entry is None:
+                    raise ConfigError(f"{args.zoo}: the zoo has no occupancy network")
+                args.occupancy_net = entry.path / "model.safetensors"
+            args.occupancy_net = Path(args.occupancy_net)
             load_occupancy_net(args.occupancy_net)
         except ConfigError as err:
             p.error(str(err))

@@ -31,82 +31,39 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import random
 import sys
 import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from nerfmeta.data import load_scene  # noqa: E402
-from nerfmeta.fields.grid_ops import dilate, grid_points  # noqa: E402
+from nerfmeta.fields.grid_ops import dilate  # noqa: E402
 from nerfmeta.fields.registry import build_model  # noqa: E402
 from nerfmeta.fields.voxel_grid import VoxelGridConfig  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
-from nerfmeta.geometry.truth import in_loaded_frame, scene_sdf_of  # noqa: E402
 from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, start_colours, visual_hull  # noqa: E402
 from nerfmeta.errors import ConfigError  # noqa: E402
 from nerfmeta.io import save_tensors  # noqa: E402
-from nerfmeta.priors.occupancy import OccupancyNet, grid_views, learned_grid_start, load_occupancy_net, occupancy_inputs  # noqa: E402
+from nerfmeta.priors.occupancy import grid_views, learned_grid_start, load_occupancy_net  # noqa: E402
 from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start, load_occupied_start  # noqa: E402
-
-def coarse_model(scene):
-    """The scratch grid's model for ``scene`` (its coarse grid is the one every arm starts)."""
-    return build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
-
-
-def true_distance(scene_path: Path, scene, model) -> torch.Tensor:
-    """(X, Y, Z) exact signed distance of a generated scene at the coarse grid's points, in coarse voxels."""
-    exact = in_loaded_frame(scene_sdf_of(scene_path)[0], scene.normalization)
-    points = grid_points(model.bounds, model.size).reshape(-1, 3)
-    with torch.no_grad():
-        return torch.cat([exact(c) for c in points.split(1 << 15)]).reshape(model.size) / model.voxel
-
-
-def volume(scene_path: Path) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A generated scene's network input on the coarse grid (:func:`~nerfmeta.priors.occupancy.occupancy_inputs`:
-    features and the points the start may fill) and the ``truth:1`` occupancy it is trained to predict."""
-    scene = load_scene(scene_path)
-    model = coarse_model(scene)
-    views = grid_views(model, scene)
-    if isinstance(views, str):
-        raise SystemExit(f"{scene_path}: {views}")
-    return *occupancy_inputs(views, model.size), true_distance(scene_path, scene, model) < 1.0
-
+from pretrain.occupancy import (OccupancyTrainConfig, occupancy_volume, print_log, scratch_grid,  # noqa: E402
+                                train_occupancy_net, true_distance)
 
 def train(args: argparse.Namespace) -> int:
-    """Fit :class:`OccupancyNet` to every scene of the collections (weighted BCE inside the hull, recall first)."""
+    """Fit :class:`OccupancyNet` to every scene of the collections (:func:`pretrain.occupancy.train_occupancy_net`)."""
     from nerfmeta.collection.generate import load_collection
 
     if args.out.exists():  # never over a file this command did not write now
         raise SystemExit(f"{args.out}: already exists; name a new file for the network")
-    torch.manual_seed(args.seed)
-    rng = random.Random(args.seed)
-    data = []
-    for root in args.collections:
-        collection = load_collection(Path(root))
-        for record in collection.scenes:
-            data.append(volume(collection.root / record.path))
-    print(f"{len(data)} scenes", flush=True)
-    net = OccupancyNet(args.width)
-    opt = torch.optim.Adam(net.parameters(), lr=2e-3)
-    t0 = time.perf_counter()
-    for step in range(args.steps):
-        feats, hull, target = rng.choice(data)
-        if rng.random() < 0.5:  # mirrored along x
-            feats, hull, target = feats.flip(1), hull.flip(0), target.flip(0)
-        logits = net(feats)
-        loss = F.binary_cross_entropy_with_logits(logits[hull], target[hull].float(), pos_weight=torch.tensor(args.pos_weight))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if step % 200 == 0 or step == args.steps - 1:
-            print(json.dumps({"step": step, "loss": round(loss.item(), 4), "s": round(time.perf_counter() - t0, 1)}), flush=True)
+    config = OccupancyTrainConfig(width=args.width, steps=args.steps, pos_weight=args.pos_weight, seed=args.seed)
+    volumes = [occupancy_volume(c.root / r.path) for c in map(load_collection, args.collections) for r in c.scenes]
+    print(f"{len(volumes)} scenes", flush=True)
+    net, _ = train_occupancy_net(volumes, config, on_log=print_log)
     save_tensors(args.out, net.state_dict())  # atomically
     return 0
 
@@ -126,7 +83,7 @@ def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
 def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
     """The arm's model, started, and a note (what it occupied, how long building it took)."""
     if arm == "scratch":
-        return coarse_model(scene), "no start"
+        return scratch_grid(scene), "no start"
     config = dataclasses.replace(VoxelGridConfig().for_scene(scene), coarse_iters=CARVE_COARSE_ITERS)
     model = build_model("grid", config, scene.bounds, seed=0)
     if arm == "carve":

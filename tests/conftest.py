@@ -45,6 +45,7 @@ TINY_ZOO = ZooRecipe(
     classifier={"input_size": 16, "batch_size": 8, "epochs": 2, "stats_views": 4}, model=TINY_MODEL, downscale=1.0, batch_rays=64,
     category_iters=10, meta_steps=2, meta={"meta_batch": 2, "support_rays": 32, "query_rays": 32, "inner_steps": 1, "eval_tasks": 1},
     fit_iters=6, fit_eval_every=3, freeze=1,
+    occupancy_resolutions=(16,), occupancy_scenes_per_category=1, occupancy_views=4, occupancy={"steps": 4, "width": 2},
 )
 
 

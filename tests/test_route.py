@@ -156,7 +156,7 @@ def test_prior_facts_of_the_zoo_are_read_from_its_files(zoo_dir: Path, new_scene
 
 def test_tiny_zoo_lists_every_file_with_its_hash(zoo_dir: Path):
     zoo = load_zoo(zoo_dir)
-    assert {e.name for e in zoo.entries} == {"classifier", "category/chair", "category/mug", "meta"}
+    assert {e.name for e in zoo.entries} == {"classifier", "category/chair", "category/mug", "meta", "occupancy"}
     doc = json.loads((zoo_dir / MANIFEST).read_text())
     assert doc["fit"]["backbone"] == "nerf" and doc["fit"]["model"] == TINY_MODEL and doc["fit"]["freeze"] == 1
     assert doc["known_categories"] == ["chair", "mug"] and doc["unseen_categories"] == ["vase"]
@@ -320,7 +320,7 @@ def test_real_classifier_route_matches_its_answer(zoo_dir, new_scenes, tmp_path,
     zoo = load_zoo(zoo_dir)
     expected = decide_route({k: route[k] for k in ("category", "confidence", "unknown", "probabilities", "views", "score")},
                             zoo, 1, backbone="nerf", scene=scene_facts(RunConfig(scene=str(new_scenes["known"]), backbone="nerf")),
-                            priors={e.name: prior_facts(zoo, e) for e in zoo.entries if e.kind != "classifier"})
+                            priors={e.name: prior_facts(zoo, e) for e in zoo.entries if e.kind in ("category", "meta")})
     assert route["route"] == expected.route and route["init"] == expected.init
     assert route["views"] == 4  # training views only: the test views are the fit's evaluation
     assert f"route: {route['route']}" in capsys.readouterr().out

@@ -173,7 +173,7 @@ def test_resume_of_a_transfer_fit_continues_from_its_checkpoint(world, tmp_path)
     ("too_many", "--freeze 99"),
     ("backbone", "holds a nerf model, not grid"),
     ("shape", "--set width=64: the category model"),
-    ("spec", "use scratch, carve, category:DIR or meta:DIR"),
+    ("spec", "use scratch, carve, occupancy[:NET.safetensors], category:DIR or meta:DIR"),
     ("missing", "init.json: missing"),
     ("corrupt", "SHA-256"),
     ("kind", "is a 'category' initialisation, not 'meta'"),

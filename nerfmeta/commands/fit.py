@@ -24,6 +24,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.registry import BACKBONES
 from nerfmeta.fit.loop import FitConfig, StepRecord
 from nerfmeta.fit.run import RunConfig, default_backbone, run_fit
+from nerfmeta.init import FEED_FORWARD
 from nerfmeta.presets import PRESETS, Preset, describe, get_preset, preset_backbone
 
 FREEZE_HELP = (
@@ -69,7 +70,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     "start from its category model, or from the meta-learned initialisation for an unknown category, where "
                     "that prior applies (backbone, box, resolution, background); else from scratch, saying why; "
                     "category:DIR is a 'nerfmeta pretrain category' model, meta:DIR a 'nerfmeta meta-train' one; a saved "
-                    "init keeps its backbone config",
+                    "init keeps its backbone config; carve and occupancy start the grid's coarse stage from the scene's "
+                    "own views (opt-in, see BENCHMARKS.md), occupancy with the network of the zoo (--zoo)",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
             "drop_views": "comma-separated, e.g. images/r_4.png,images/r_15.png (a file name alone where it names one "
@@ -85,7 +87,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         notes={name: "with --init auto and a zoo of the fit's backbone, the zoo's" for name in ZOO_FIT_FIELDS},
     )
     p.add_argument("--zoo", default=None, metavar="DIR",
-                   help="model zoo for --init auto (default: $NERFMETA_ZOO, else the model_zoo/ shipped with nerfmeta; "
+                   help="model zoo for --init auto and --init occupancy (default: $NERFMETA_ZOO, else the model_zoo/ shipped with nerfmeta; "
                    "'none' for no zoo); its manifest's hashes are checked")
     p.add_argument("--compare", default="", metavar="BASELINES",
                    help="also fit these baselines beside an --init auto fit, into RUN/compare/NAME, and report PSNR against "
@@ -223,8 +225,10 @@ def run(args: argparse.Namespace) -> int:
         return run_auto(args)
     if args.compare:
         raise ConfigError("--compare needs --init auto (the routed fit is what a baseline is compared with)")
-    if args.zoo is not None:
-        raise ConfigError("--zoo is used by --init auto only")
+    if init == "occupancy":
+        init = zoo_occupancy_init(args.zoo)
+    elif args.zoo is not None:
+        raise ConfigError("--zoo is used by --init auto and --init occupancy only")
     preset = preset_from(args)
     fit_config = fit_config_from(args, None, preset)
     backbone = args.backbone or default_backbone(init)
@@ -235,13 +239,32 @@ def run(args: argparse.Namespace) -> int:
         summary = run_fit(config, args.out, resume=args.resume, overwrite=args.overwrite, callbacks=[bar])
     finally:
         bar.close()
-    if summary["init"] != "scratch":
+    if summary["init"] in FEED_FORWARD:
+        start = summary["init_source"]
+        print(f"--init {summary['init']}: {start['reason']} (built in {start['build_s']:.2f} s"
+              + (f", network {summary['init_path']})" if summary["init_path"] else ")"))
+    elif summary["init"] != "scratch":
         frozen = ", ".join(summary["frozen_layers"]) or "none"
         print(f"started from the {summary['init']} model in {summary['init_path']} (frozen layers: {frozen})")
     print(f"test PSNR {summary['test_psnr']} dB, SSIM {summary['test_ssim']}, LPIPS {summary['test_lpips']}, {summary['iters']} iterations in "
           f"{summary['time_s']:.1f} s ({summary['stop_reason']}), {summary['samples_per_ray']} samples/ray")
     print(f"results in {args.out}/ (summary.json, metrics.jsonl, psnr_vs_iter.png, psnr_vs_time.png, renders/)")
     return 0
+
+
+def zoo_occupancy_init(zoo: str | None) -> str:
+    """``--init occupancy``: ``occupancy:NET`` with the network of the zoo :func:`nerfmeta.zoo.open_zoo` picks
+    (hash-checked), so config.json names the very file; a one-line error when there is no zoo or it has no network."""
+    from nerfmeta.zoo import open_zoo
+
+    found = open_zoo(zoo)
+    if found is None:
+        raise ConfigError("--init occupancy needs a model zoo with an occupancy network (--zoo DIR, or $NERFMETA_ZOO), "
+                          "or name a network: --init occupancy:NET.safetensors")
+    if found.occupancy is None:
+        raise ConfigError(f"--init occupancy: the model zoo in {found.root} has no occupancy network (add one with "
+                          "scripts/build_model_zoo --only occupancy, or name one: --init occupancy:NET.safetensors)")
+    return f"occupancy:{found.occupancy.path / 'model.safetensors'}"
 
 
 def run_auto(args: argparse.Namespace) -> int:

@@ -50,7 +50,7 @@ from nerfmeta.fit.loop import Callback, FitConfig, FitResult, FitState, StepReco
 from nerfmeta.fit.sampler import fit_space
 from nerfmeta.fit.views import SUSPECT_DB, TEST_SUSPECT_DB, suspect_views
 from nerfmeta.render.ndc import BD_FACTOR, NEAR_FACTOR
-from nerfmeta.init import WEIGHTS, load_init, parse_init
+from nerfmeta.init import FEED_FORWARD, WEIGHTS, load_init, parse_init
 from nerfmeta.io import atomic_path, read_metrics, sha256_file, to_jsonable, write_json
 from nerfmeta.report.plots import image_strip, plot_psnr_curves
 from nerfmeta.report.snapshots import SNAPSHOT_DIR, SnapshotWriter, default_views
@@ -98,7 +98,7 @@ class RunConfig:
     device: str = "cpu"
     """Torch device."""
     init: str = "scratch"
-    """Where the initial weights come from: ``scratch``, ``carve`` (grid: the visual hull of the scene's own training views, where they can be carved), ``category:DIR`` or ``meta:DIR``."""
+    """Where the initial weights come from: ``scratch``, ``carve`` (grid: the visual hull of the scene's own training views, where they can be carved), ``occupancy`` (grid: the learned occupancy start from the same views, the model zoo's network; ``occupancy:NET.safetensors`` another), ``category:DIR`` or ``meta:DIR``."""
     freeze: int = bounded(0, low=0)
     """Number of leading layers (of ``model.layers()``, input to output) kept frozen; needs a saved init."""
     renders: int = bounded(RENDERED_VIEWS, low=0)
@@ -192,7 +192,7 @@ class InitInfo:
 def default_backbone(init: str) -> str:
     """The backbone a fit uses when none is named: the saved one for a saved init, else ``grid``."""
     kind, folder = parse_init(init)
-    if folder is None:
+    if folder is None or kind in FEED_FORWARD:
         return "grid"
     return load_init(folder, expect_kind=kind).backbone
 
@@ -205,6 +205,9 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     structure and weights, unchanged (hash checked); ``config.backbone`` must name the saved
     backbone and every ``--set`` override must equal the saved value, since a transfer fit
     continues the saved architecture. Then the first ``config.freeze`` layers are frozen.
+    Feed-forward (``carve``, ``occupancy:NET``, grid only): the scratch model with its coarse grid started from the
+    scene's own views (:mod:`nerfmeta.priors`), or left as it is where the start does not apply; the
+    :class:`~nerfmeta.priors.start.StartReport` is the init's ``meta`` (``summary.json["init_source"]``).
 
     Raises:
         ConfigError: a bad init spec or folder, another backbone or architecture, a ``freeze``
@@ -213,22 +216,30 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     kind, folder = parse_init(config.init)
     if config.freeze < 0:
         raise ConfigError(f"--freeze {config.freeze}: must be 0 or more")
-    if folder is None:
+    if folder is None or kind in FEED_FORWARD:
         if config.freeze:
             raise ConfigError(f"--freeze {config.freeze} needs --init category:DIR or meta:DIR; "
                               f"a {kind} fit has no learned layers to keep")
-        if kind == "carve" and config.backbone != "grid":
-            raise ConfigError(f"--init carve starts a voxel grid; this fit's backbone is {config.backbone} (use --backbone grid)")
+        if kind in FEED_FORWARD and config.backbone != "grid":
+            raise ConfigError(f"--init {kind} starts a voxel grid; this fit's backbone is {config.backbone} (use --backbone grid)")
+        net = None
+        if kind == "occupancy":
+            from nerfmeta.priors.occupancy import load_occupancy_net
+
+            net = load_occupancy_net(folder)  # before any model is built: a bad file is one line
         model_config = config.model_config(scene)
         model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
-        meta: dict[str, Any] = {}
-        if kind == "carve":
-            from nerfmeta.priors.start import carve_grid_start
+        if kind == "scratch":
+            return model, model_config, InitInfo(kind, None, None, {}, (), ())
+        from nerfmeta.priors.occupancy import learned_grid_start
+        from nerfmeta.priors.start import carve_grid_start
 
-            report = carve_grid_start(model, scene, torch.tensor(config.background, dtype=torch.float32, device=device))
-            log.info("--init carve: %s", report.reason)
-            meta = report.as_json()
-        return model, model_config, InitInfo(kind, None, None, meta, (), ())
+        background = torch.tensor(config.background, dtype=torch.float32, device=device)
+        report = (carve_grid_start(model, scene, background) if net is None
+                  else learned_grid_start(model, scene, background, net))
+        log.info("--init %s: %s", kind, report.reason)
+        path, digest = (None, None) if folder is None else (folder.resolve(), sha256_file(folder))
+        return model, model_config, InitInfo(kind, path, digest, report.as_json(), (), ())
     saved = load_init(folder, expect_kind=kind)
     if saved.backbone != config.backbone:
         raise ConfigError(f"--init {config.init}: holds a {saved.backbone} model, not {config.backbone}; "
@@ -406,13 +417,13 @@ class FitSummary:
     backbone: str
     """Backbone name."""
     init: str
-    """``scratch``, ``category`` or ``meta``."""
+    """``scratch``, ``carve``, ``occupancy``, ``category`` or ``meta``."""
     init_path: str | None
-    """The initialisation folder (absolute), None for scratch."""
+    """The initialisation folder (absolute; the network file for ``occupancy``), None for scratch and carve."""
     init_sha256: str | None
     """SHA-256 of its weights file."""
     init_source: dict[str, Any]
-    """The saved initialisation's training facts."""
+    """The saved initialisation's training facts, or what a feed-forward start did (``applied``, ``reason``, ``build_s``)."""
     freeze: int
     """Leading layers kept frozen."""
     frozen_layers: list[str]
