@@ -115,3 +115,38 @@ def test_a_saved_network_reloads_and_a_bad_file_is_one_line_naming_it(tmp_path) 
         with pytest.raises(ConfigError) as err:
             occupancy.load_occupancy_net(tmp_path / name)
         assert str(err.value).startswith(f"{tmp_path / name}: {why}") and "\n" not in str(err.value)
+
+
+def test_a_box_much_larger_than_the_object_is_tightened_to_what_the_silhouettes_allow() -> None:
+    import dataclasses
+
+    from nerfmeta.fields.registry import build_model
+    from nerfmeta.fields.voxel_grid import VoxelGridConfig
+    from test_carve import RADIUS
+
+    config = VoxelGridConfig(num_voxels=16**3, coarse_num_voxels=12**3)
+    built = []
+
+    def build(bounds):
+        built.append(bounds.clone())
+        return build_model("grid", config, bounds, seed=0)
+
+    big = dataclasses.replace(sphere_scene(), bounds=torch.tensor([[-1.8] * 3, [1.8] * 3]))  # 3x the sphere's box
+    model, report = occupancy.learned_start(build, big, torch.ones(3), constant_net(10.0))
+    box = model.bounds
+    assert len(built) == 2 and report.figures["box_from_silhouettes"] and report.applied
+    assert bool((box[0] > -1.8).all() and (box[1] < 1.8).all())  # inside the scene's box ...
+    assert bool((box[0] <= -RADIUS).all() and (box[1] >= RADIUS).all())  # ... holding the sphere
+    assert report.figures["box"] == [[round(float(v), 4) for v in row] for row in box.tolist()]
+    assert model.voxel < 0.6 * build(big.bounds).voxel  # the same voxel count on the object: smaller voxels
+    # a box the silhouettes reach on every face is kept: one build, the scene's own box
+    built.clear()
+    fitted = dataclasses.replace(big, bounds=torch.tensor([[-0.6] * 3, [0.6] * 3]))
+    model, report = occupancy.learned_start(build, fitted, torch.ones(3), constant_net(10.0))
+    assert len(built) == 1 and torch.equal(model.bounds, fitted.bounds) and not report.figures["box_from_silhouettes"]
+    # views that cannot be carved: the scene's box, no start, the reason
+    poses, k, alphas = sphere_views()
+    busy = tiny_scene(torch.rand(*alphas.shape, 3, generator=torch.Generator().manual_seed(1)), None, poses, k)
+    built.clear()
+    model, report = occupancy.learned_start(build, busy, torch.ones(3), constant_net(10.0))
+    assert len(built) == 1 and not report.applied and "not a uniform background" in report.reason

@@ -206,7 +206,8 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     backbone and every ``--set`` override must equal the saved value, since a transfer fit
     continues the saved architecture. Then the first ``config.freeze`` layers are frozen.
     Feed-forward (``carve``, ``occupancy:NET``, grid only): the scratch model with its coarse grid started from the
-    scene's own views (:mod:`nerfmeta.priors`), or left as it is where the start does not apply; the
+    scene's own views (:mod:`nerfmeta.priors`; ``occupancy`` in the box its silhouettes allow,
+    :func:`~nerfmeta.priors.occupancy.learned_start`), or left as it is where the start does not apply; the
     :class:`~nerfmeta.priors.start.StartReport` is the init's ``meta`` (``summary.json["init_source"]``).
 
     Raises:
@@ -228,15 +229,21 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
 
             net = load_occupancy_net(folder)  # before any model is built: a bad file is one line
         model_config = config.model_config(scene)
-        model = build_model(config.backbone, model_config, scene.bounds, seed=config.fit.seed, device=device)
+
+        def build(bounds: torch.Tensor) -> RadianceModel:
+            return build_model(config.backbone, model_config, bounds, seed=config.fit.seed, device=device)
+
         if kind == "scratch":
-            return model, model_config, InitInfo(kind, None, None, {}, (), ())
-        from nerfmeta.priors.occupancy import learned_grid_start
+            return build(scene.bounds), model_config, InitInfo(kind, None, None, {}, (), ())
+        from nerfmeta.priors.occupancy import learned_start
         from nerfmeta.priors.start import carve_grid_start
 
         background = torch.tensor(config.background, dtype=torch.float32, device=device)
-        report = (carve_grid_start(model, scene, background) if net is None
-                  else learned_grid_start(model, scene, background, net))
+        if net is None:
+            model = build(scene.bounds)
+            report = carve_grid_start(model, scene, background)
+        else:
+            model, report = learned_start(build, scene, background, net)
         log.info("--init %s: %s", kind, report.reason)
         path, digest = (None, None) if folder is None else (folder.resolve(), sha256_file(folder))
         return model, model_config, InitInfo(kind, path, digest, report.as_json(), (), ())

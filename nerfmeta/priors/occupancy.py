@@ -12,9 +12,11 @@ route to it (BENCHMARKS.md says where it still falls behind the scratch grid).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import torch
 import torch.nn as nn
@@ -23,7 +25,7 @@ from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError, message_line
 from nerfmeta.fields.grid_ops import dilate, grid_points
 from nerfmeta.io import load_tensors
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, in_hull, lookup, silhouettes
+from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, in_hull, lookup, silhouettes, visual_hull
 from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
 
 N_FEATURES = 10
@@ -131,6 +133,12 @@ def grid_views(model, scene: Scene) -> GridViews | str:
                      train.intrinsics.to(device))
 
 
+def allowed_points(inside: torch.Tensor, seen_fraction: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """(X, Y, Z) bool: the points a start may fill, from the (N,) hull test with :data:`ALLOWED_MARGIN_PX` of mask
+    margin and the (N,) fraction of views that see each point: well-seen hull points, grown a voxel."""
+    return dilate((inside & (seen_fraction >= SEEN_FRACTION)).view(size), 1)
+
+
 def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 1 << 15) -> tuple[torch.Tensor, torch.Tensor]:
     """The network's input on a coarse grid of ``size`` corners, (F, X, Y, Z) :func:`point_features`, and the
     (X, Y, Z) points it may fill: the visual hull with :data:`ALLOWED_MARGIN_PX` of mask margin, grown a voxel.
@@ -144,8 +152,45 @@ def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 
         feats.append(_features(flat, seen, fg, dilated, flat_images))
         inside.append(in_hull(seen, torch.gather(wide, 1, flat) & seen))
     feats = torch.cat(feats, 1)
-    allowed = dilate((torch.cat(inside) & (feats[0] >= SEEN_FRACTION)).view(size), 1)
-    return feats.reshape(N_FEATURES, *size).float(), allowed
+    return feats.reshape(N_FEATURES, *size).float(), allowed_points(torch.cat(inside), feats[0], size)
+
+
+def silhouette_box(model, scene: Scene) -> torch.Tensor | None:
+    """(2, 3) the bounding box of ``model``'s coarse points a start may fill (:func:`allowed_points`), None where the
+    views cannot be carved or leave no point."""
+    views = carve_blocker(model, scene) or grid_views(model, scene)
+    if isinstance(views, str):
+        return None
+    inside, seen = visual_hull(views.points, dilate_masks(views.masks, ALLOWED_MARGIN_PX), views.poses, views.intrinsics)
+    allowed = allowed_points(inside, seen, model.size).reshape(-1)
+    if not bool(allowed.any()):
+        return None
+    kept = views.points[allowed]
+    return torch.stack([kept.amin(0), kept.amax(0)])
+
+
+def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
+                  threshold: float = THRESHOLD) -> tuple[Any, StartReport]:
+    """A voxel grid for ``scene`` started from ``net``'s occupancy, in a box that holds what its silhouettes allow.
+
+    ``build(bounds)`` makes the grid (the scratch config and seed) in a (2, 3) box. The grid is made in the scene's box;
+    where the points the start may fill (the visual hull with a margin) do not reach its faces, as on a NeRF-synthetic
+    scene whose box is several times its object, it is made again in their bounding box: the network learned shapes
+    on generated scenes whose box just holds the object, and the coarse stage then spends its voxels on the object
+    (on lego at 100 x 100, the scene's box left the start 3.4 dB below scratch after 60 s; BENCHMARKS.md). On
+    generated scenes the two boxes are the same. Returns the grid and the :class:`StartReport` (``figures["box"]``:
+    the box used; ``build_s`` includes finding it).
+    """
+    t0 = time.perf_counter()
+    model = build(scene.bounds)
+    box = silhouette_box(model, scene)
+    tightened = box is not None and not torch.equal(box, model.bounds)
+    if tightened:
+        model = build(box)
+    report = learned_grid_start(model, scene, background, net, threshold=threshold)
+    figures = {**report.figures, "box": [[round(float(v), 4) for v in row] for row in model.bounds.tolist()],
+               "box_from_silhouettes": tightened}
+    return model, dataclasses.replace(report, build_s=round(time.perf_counter() - t0, 4), figures=figures)
 
 
 def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
