@@ -167,9 +167,10 @@ def timed_fit(model, scene, fit_config, background, *, build_s: float, extra_tim
 
 
 def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, ...] = (),
-             occupancy_net: Path | None = None) -> Curve:
+             occupancy_net: Path | None = None, start_coarse_iters: int | None = None) -> Curve:
     """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built (and, for
-    ``occupancy``, before the network ``occupancy_net`` is read)."""
+    ``occupancy``, before the network ``occupancy_net`` is read). The starts keep ``start_coarse_iters`` coarse steps
+    (None: :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`, scratch's)."""
     from nerfmeta.data import load_scene
     from nerfmeta.fields.registry import build_model
     from nerfmeta.fields.voxel_grid import VoxelGridConfig
@@ -183,15 +184,16 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     config = VoxelGridConfig().for_scene(scene)
     note = ""
     if arm in ("carve", "occupancy"):
-        config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS)
+        config = dataclasses.replace(config, coarse_iters=start_coarse_iters or CARVE_COARSE_ITERS)
     model = build_model("grid", config, scene.bounds, seed=0)
     if arm in ("carve", "occupancy"):
         if arm == "carve":
             report = carve_grid_start(model, scene, background)
-        else:
-            from nerfmeta.priors.occupancy import learned_grid_start, load_occupancy_net
+        else:  # as --init occupancy does
+            from nerfmeta.priors.occupancy import learned_start, load_occupancy_net
 
-            report = learned_grid_start(model, scene, background, load_occupancy_net(occupancy_net))
+            model, report = learned_start(lambda box: build_model("grid", config, box, seed=0), scene, background,
+                                          load_occupancy_net(occupancy_net))
         note = report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
             model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
@@ -305,10 +307,11 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
 
 def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
-    k, name, group, path, arms, iters, zoo, occupancy_net = job
+    k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters = job
     torch.set_num_threads(1)
     order = arms[k % len(arms):] + arms[: k % len(arms)]
-    curves = {arm: grid_arm(arm, path, iters, occupancy_net=occupancy_net) for arm in order}
+    curves = {arm: grid_arm(arm, path, iters, occupancy_net=occupancy_net, start_coarse_iters=start_coarse_iters)
+              for arm in order}
     mlp: dict[str, Curve] = {}
     if zoo is not None:
         for arm in (("scratch-nerf", "routed-nerf") if k % 2 == 0 else ("routed-nerf", "scratch-nerf")):
@@ -346,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--occupancy-net", default=None, metavar="NET.safetensors|zoo",
                    help="add the learned occupancy start as an arm: 'zoo' for --zoo's network (what --init occupancy "
                    "uses), or a file from scripts/probe_occupancy_start.py train")
+    p.add_argument("--start-coarse-iters", type=int, default=None, metavar="N",
+                   help="coarse steps the carve and occupancy arms keep (default: scratch's, 100)")
     args = p.parse_args(argv)
     if args.report:
         doc = json.loads((args.out / "results.json").read_text())
@@ -377,7 +382,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         scenes = [s for s in scenes if s[0] in args.only.split(",")]
     results: dict[str, Any] = {}
-    jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None, args.occupancy_net)
+    jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None, args.occupancy_net,
+             args.start_coarse_iters)
             for k, (name, group, path) in enumerate(scenes)]
     with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for name, res in pool.map(fit_scene, jobs):
@@ -388,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
             (args.out / "results.json").write_text(json.dumps(results, indent=1))
     doc = {"date": datetime.date.today().isoformat(), "load_before": load_before, "load_after": os.getloadavg(),
            "minutes": round((time.perf_counter() - t_start) / 60, 2), "seed": args.seed, "resolution": args.resolution,
-           "iters": args.iters, "arms": arms, "results": results}
+           "iters": args.iters, "arms": arms, "start_coarse_iters": args.start_coarse_iters, "results": results}
     (args.out / "results.json").write_text(json.dumps(doc, indent=1))
     lines = tables(results, arms, args.mlp)
     (args.out / "table.md").write_text("\n".join(lines) + "\n")
