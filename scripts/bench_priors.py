@@ -186,14 +186,16 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     if arm in ("carve", "occupancy"):
         config = dataclasses.replace(config, coarse_iters=start_coarse_iters or CARVE_COARSE_ITERS)
     model = build_model("grid", config, scene.bounds, seed=0)
-    if arm in ("carve", "occupancy"):
-        if arm == "carve":
-            report = carve_grid_start(model, scene, background)
-        else:  # as --init occupancy does
-            from nerfmeta.priors.occupancy import learned_start, load_occupancy_net
+    if arm in ("carve", "occupancy"):  # as --init carve / --init occupancy do: in the silhouettes' box
+        from nerfmeta.priors.occupancy import boxed_start, learned_start, load_occupancy_net
 
-            model, report = learned_start(lambda box: build_model("grid", config, box, seed=0), scene, background,
-                                          load_occupancy_net(occupancy_net))
+        def build(box: torch.Tensor):
+            return build_model("grid", config, box, seed=0)
+
+        if arm == "carve":
+            model, report = boxed_start(build, scene, lambda m: carve_grid_start(m, scene, background))
+        else:
+            model, report = learned_start(build, scene, background, load_occupancy_net(occupancy_net))
         note = report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
             model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)

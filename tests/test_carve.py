@@ -189,6 +189,8 @@ def test_fit_with_init_carve_records_the_start(tiny_scene, tmp_path):
     summary = run_fit(config, tmp_path / "run")
     assert summary["init"] == "carve" and summary["init_path"] is None
     assert summary["init_source"]["kind"] == "carve" and summary["init_source"]["applied"] is True
+    box = summary["init_source"]["figures"]["box"]  # the grid's box: the silhouettes' (priors.occupancy.boxed_start)
+    assert len(box) == 2 and all(lo < hi for lo, hi in zip(*box))
 
 
 def test_init_carve_refuses_the_mlp(tiny_scene, tmp_path):

@@ -206,8 +206,8 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     backbone and every ``--set`` override must equal the saved value, since a transfer fit
     continues the saved architecture. Then the first ``config.freeze`` layers are frozen.
     Feed-forward (``carve``, ``occupancy:NET``, grid only): the scratch model with its coarse grid started from the
-    scene's own views (:mod:`nerfmeta.priors`; ``occupancy`` in the box its silhouettes allow,
-    :func:`~nerfmeta.priors.occupancy.learned_start`), or left as it is where the start does not apply; the
+    scene's own views (:mod:`nerfmeta.priors`), both in the box the silhouettes allow
+    (:func:`~nerfmeta.priors.occupancy.boxed_start`), or left as it is where the start does not apply; the
     :class:`~nerfmeta.priors.start.StartReport` is the init's ``meta`` (``summary.json["init_source"]``).
 
     Raises:
@@ -235,13 +235,12 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
 
         if kind == "scratch":
             return build(scene.bounds), model_config, InitInfo(kind, None, None, {}, (), ())
-        from nerfmeta.priors.occupancy import learned_start
+        from nerfmeta.priors.occupancy import boxed_start, learned_start
         from nerfmeta.priors.start import carve_grid_start
 
         background = torch.tensor(config.background, dtype=torch.float32, device=device)
         if net is None:
-            model = build(scene.bounds)
-            report = carve_grid_start(model, scene, background)
+            model, report = boxed_start(build, scene, lambda m: carve_grid_start(m, scene, background))
         else:
             model, report = learned_start(build, scene, background, net)
         log.info("--init %s: %s", kind, report.reason)

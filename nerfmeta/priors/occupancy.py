@@ -169,17 +169,18 @@ def silhouette_box(model, scene: Scene) -> torch.Tensor | None:
     return torch.stack([kept.amin(0), kept.amax(0)])
 
 
-def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
-                  threshold: float = THRESHOLD) -> tuple[Any, StartReport]:
-    """A voxel grid for ``scene`` started from ``net``'s occupancy, in a box that holds what its silhouettes allow.
+def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene,
+                start: Callable[[Any], StartReport]) -> tuple[Any, StartReport]:
+    """A voxel grid for ``scene`` in a box that holds what its silhouettes allow, started by ``start(model)``.
 
     ``build(bounds)`` makes the grid (the scratch config and seed) in a (2, 3) box. The grid is made in the scene's box;
-    where the points the start may fill (the visual hull with a margin) do not reach its faces, as on a NeRF-synthetic
-    scene whose box is several times its object, it is made again in their bounding box: the network learned shapes
-    on generated scenes whose box just holds the object, and the coarse stage then spends its voxels on the object
-    (on lego at 100 x 100, the scene's box left the start 3.4 dB below scratch after 60 s; BENCHMARKS.md). On
-    generated scenes the two boxes are the same. Returns the grid and the :class:`StartReport` (``figures["box"]``:
-    the box used; ``build_s`` includes finding it).
+    where the points a start may fill (:func:`silhouette_box`: the visual hull with a margin) do not reach its faces, as
+    on a NeRF-synthetic scene whose box is several times its object, it is made again in their bounding box, with the
+    same number of voxels. In the scene's box the coarse stage spends its voxels on empty space and grows faint density
+    near the faces, and the fine stage's box comes out nearly the whole scene box: on lego at 100 x 100 both starts ended
+    3-3.5 dB below scratch (BENCHMARKS.md). The network also learned shapes on generated scenes, whose box just holds
+    the object; on those the two boxes are the same. Returns the grid and ``start``'s report (``figures["box"]``: the
+    box used; ``build_s`` includes finding it).
     """
     t0 = time.perf_counter()
     model = build(scene.bounds)
@@ -187,10 +188,16 @@ def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background
     tightened = box is not None and not torch.equal(box, model.bounds)
     if tightened:
         model = build(box)
-    report = learned_grid_start(model, scene, background, net, threshold=threshold)
+    report = start(model)
     figures = {**report.figures, "box": [[round(float(v), 4) for v in row] for row in model.bounds.tolist()],
                "box_from_silhouettes": tightened}
     return model, dataclasses.replace(report, build_s=round(time.perf_counter() - t0, 4), figures=figures)
+
+
+def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
+                  threshold: float = THRESHOLD) -> tuple[Any, StartReport]:
+    """:func:`learned_grid_start` in the silhouettes' box (:func:`boxed_start`): what ``--init occupancy`` fits."""
+    return boxed_start(build, scene, lambda model: learned_grid_start(model, scene, background, net, threshold=threshold))
 
 
 def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
