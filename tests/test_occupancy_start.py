@@ -144,6 +144,11 @@ def test_a_box_much_larger_than_the_object_is_tightened_to_what_the_silhouettes_
     fitted = dataclasses.replace(big, bounds=torch.tensor([[-0.6] * 3, [0.6] * 3]))
     model, report = occupancy.learned_start(build, fitted, torch.ones(3), constant_net(10.0))
     assert len(built) == 1 and torch.equal(model.bounds, fitted.bounds) and not report.figures["box_from_silhouettes"]
+    # a start that does not apply in the tightened box: the grid goes back to the scene's box
+    built.clear()
+    refused = occupancy.StartReport(False, "test", "not here", 0.0, {})
+    model, report = occupancy.boxed_start(build, big, lambda m: refused)
+    assert len(built) == 3 and torch.equal(model.bounds, big.bounds) and not report.figures["box_from_silhouettes"]
     # views that cannot be carved: the scene's box, no start, the reason
     poses, k, alphas = sphere_views()
     busy = tiny_scene(torch.rand(*alphas.shape, 3, generator=torch.Generator().manual_seed(1)), None, poses, k)

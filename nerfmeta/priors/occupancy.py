@@ -179,8 +179,8 @@ def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene,
     same number of voxels. In the scene's box the coarse stage spends its voxels on empty space and grows faint density
     near the faces, and the fine stage's box comes out nearly the whole scene box: on lego at 100 x 100 both starts ended
     3-3.5 dB below scratch (BENCHMARKS.md). The network also learned shapes on generated scenes, whose box just holds
-    the object; on those the two boxes are the same. Returns the grid and ``start``'s report (``figures["box"]``: the
-    box used; ``build_s`` includes finding it).
+    the object; on those the two boxes are the same. A grid the start leaves untouched keeps the scene's box. Returns
+    the grid and ``start``'s report (``figures["box"]``: the box used; ``build_s`` includes finding it).
     """
     t0 = time.perf_counter()
     model = build(scene.bounds)
@@ -189,6 +189,8 @@ def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene,
     if tightened:
         model = build(box)
     report = start(model)
+    if tightened and not report.applied:  # no start: the grid keeps the scene's box, as a scratch fit would
+        model, tightened = build(scene.bounds), False
     figures = {**report.figures, "box": [[round(float(v), 4) for v in row] for row in model.bounds.tolist()],
                "box_from_silhouettes": tightened}
     return model, dataclasses.replace(report, build_s=round(time.perf_counter() - t0, 4), figures=figures)
