@@ -183,17 +183,18 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     t0 = time.perf_counter()
     config = VoxelGridConfig().for_scene(scene)
     note = ""
-    if arm in ("carve", "occupancy"):
+    if arm not in ("carve", "occupancy"):
+        model = build_model("grid", config, scene.bounds, seed=0)
+    else:  # as --init carve / --init occupancy do: in the silhouettes' box
+        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, load_occupancy_net
+
         config = dataclasses.replace(config, coarse_iters=start_coarse_iters or CARVE_COARSE_ITERS)
-    model = build_model("grid", config, scene.bounds, seed=0)
-    if arm in ("carve", "occupancy"):  # as --init carve / --init occupancy do: in the silhouettes' box
-        from nerfmeta.priors.occupancy import boxed_start, learned_start, load_occupancy_net
 
         def build(box: torch.Tensor):
             return build_model("grid", config, box, seed=0)
 
         if arm == "carve":
-            model, report = boxed_start(build, scene, lambda m: carve_grid_start(m, scene, background))
+            model, report = boxed_start(build, scene, hull_inputs, lambda m, _: carve_grid_start(m, scene, background))
         else:
             model, report = learned_start(build, scene, background, load_occupancy_net(occupancy_net))
         note = report.reason

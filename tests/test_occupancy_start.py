@@ -147,7 +147,7 @@ def test_a_box_much_larger_than_the_object_is_tightened_to_what_the_silhouettes_
     # a start that does not apply in the tightened box: the grid goes back to the scene's box
     built.clear()
     refused = occupancy.StartReport(False, "test", "not here", 0.0, {})
-    model, report = occupancy.boxed_start(build, big, lambda m: refused)
+    model, report = occupancy.boxed_start(build, big, occupancy.hull_inputs, lambda m, inputs: refused)
     assert len(built) == 3 and torch.equal(model.bounds, big.bounds) and not report.figures["box_from_silhouettes"]
     # views that cannot be carved: the scene's box, no start, the reason
     poses, k, alphas = sphere_views()

@@ -235,12 +235,12 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
 
         if kind == "scratch":
             return build(scene.bounds), model_config, InitInfo(kind, None, None, {}, (), ())
-        from nerfmeta.priors.occupancy import boxed_start, learned_start
+        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start
         from nerfmeta.priors.start import carve_grid_start
 
         background = torch.tensor(config.background, dtype=torch.float32, device=device)
         if net is None:
-            model, report = boxed_start(build, scene, lambda m: carve_grid_start(m, scene, background))
+            model, report = boxed_start(build, scene, hull_inputs, lambda m, _: carve_grid_start(m, scene, background))
         else:
             model, report = learned_start(build, scene, background, net)
         log.info("--init %s: %s", kind, report.reason)

@@ -155,40 +155,65 @@ def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 
     return feats.reshape(N_FEATURES, *size).float(), allowed_points(torch.cat(inside), feats[0], size)
 
 
-def silhouette_box(model, scene: Scene) -> torch.Tensor | None:
-    """(2, 3) the bounding box of ``model``'s coarse points a start may fill (:func:`allowed_points`), None where the
-    views cannot be carved or leave no point."""
+@dataclass(frozen=True)
+class StartInputs:
+    """What a start reads of a grid: its points and views, the points it may fill, and (the learned start) its features.
+
+    Attributes:
+        views: the grid's coarse points and the training views (:func:`grid_views`).
+        allowed: (X, Y, Z) bool, the points a start may fill (:func:`allowed_points`).
+        features: (F, X, Y, Z) the network's input (:func:`occupancy_inputs`), None where not computed.
+    """
+
+    views: GridViews
+    allowed: torch.Tensor
+    features: torch.Tensor | None = None
+
+
+def hull_inputs(model, scene: Scene) -> StartInputs | str:
+    """``model``'s :class:`StartInputs` without features (one projection: the hull), or why the views cannot be carved."""
     views = carve_blocker(model, scene) or grid_views(model, scene)
     if isinstance(views, str):
-        return None
+        return views
     inside, seen = visual_hull(views.points, dilate_masks(views.masks, ALLOWED_MARGIN_PX), views.poses, views.intrinsics)
-    allowed = allowed_points(inside, seen, model.size).reshape(-1)
-    if not bool(allowed.any()):
-        return None
-    kept = views.points[allowed]
-    return torch.stack([kept.amin(0), kept.amax(0)])
+    return StartInputs(views, allowed_points(inside, seen, model.size))
 
 
-def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene,
-                start: Callable[[Any], StartReport]) -> tuple[Any, StartReport]:
-    """A voxel grid for ``scene`` in a box that holds what its silhouettes allow, started by ``start(model)``.
+def network_inputs(model, scene: Scene) -> StartInputs | str:
+    """``model``'s :class:`StartInputs` with the network's features (one projection serves both), or why not."""
+    views = carve_blocker(model, scene) or grid_views(model, scene)
+    if isinstance(views, str):
+        return views
+    features, allowed = occupancy_inputs(views, model.size)
+    return StartInputs(views, allowed, features)
 
-    ``build(bounds)`` makes the grid (the scratch config and seed) in a (2, 3) box. The grid is made in the scene's box;
-    where the points a start may fill (:func:`silhouette_box`: the visual hull with a margin) do not reach its faces, as
-    on a NeRF-synthetic scene whose box is several times its object, it is made again in their bounding box, with the
-    same number of voxels. In the scene's box the coarse stage spends its voxels on empty space and grows faint density
+
+def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene, prepare: Callable[[Any, Scene], StartInputs | str],
+                start: Callable[[Any, StartInputs | str], StartReport]) -> tuple[Any, StartReport]:
+    """A voxel grid for ``scene`` in a box that holds what its silhouettes allow, started by ``start(model, inputs)``.
+
+    ``build(bounds)`` makes the grid (the scratch config and seed) in a (2, 3) box; ``prepare(model, scene)`` reads it
+    (:func:`hull_inputs`, :func:`network_inputs`), and ``start`` gets what it read. The grid is made in the scene's box;
+    where the points a start may fill (the visual hull with a margin) do not reach its faces, as on a NeRF-synthetic
+    scene whose box is several times its object, it is made again in their bounding box, with the same number of
+    voxels, and read again. In the scene's box the coarse stage spends its voxels on empty space and grows faint density
     near the faces, and the fine stage's box comes out nearly the whole scene box: on lego at 100 x 100 both starts ended
     3-3.5 dB below scratch (BENCHMARKS.md). The network also learned shapes on generated scenes, whose box just holds
-    the object; on those the two boxes are the same. A grid the start leaves untouched keeps the scene's box. Returns
-    the grid and ``start``'s report (``figures["box"]``: the box used; ``build_s`` includes finding it).
+    the object; on those the two boxes are the same and the grid is read once. A grid the start leaves untouched keeps
+    the scene's box. Returns the grid and ``start``'s report (``figures["box"]``: the box used; ``build_s`` includes
+    finding it).
     """
     t0 = time.perf_counter()
     model = build(scene.bounds)
-    box = silhouette_box(model, scene)
-    tightened = box is not None and not torch.equal(box, model.bounds)
-    if tightened:
-        model = build(box)
-    report = start(model)
+    inputs = prepare(model, scene)
+    tightened = False
+    if not isinstance(inputs, str) and bool(inputs.allowed.any()):
+        kept = inputs.views.points[inputs.allowed.reshape(-1)]
+        box = torch.stack([kept.amin(0), kept.amax(0)])
+        if not torch.equal(box, model.bounds):
+            model, tightened = build(box), True
+            inputs = prepare(model, scene)
+    report = start(model, inputs)
     if tightened and not report.applied:  # no start: the grid keeps the scene's box, as a scratch fit would
         model, tightened = build(scene.bounds), False
     figures = {**report.figures, "box": [[round(float(v), 4) for v in row] for row in model.bounds.tolist()],
@@ -199,18 +224,21 @@ def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene,
 def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
                   threshold: float = THRESHOLD) -> tuple[Any, StartReport]:
     """:func:`learned_grid_start` in the silhouettes' box (:func:`boxed_start`): what ``--init occupancy`` fits."""
-    return boxed_start(build, scene, lambda model: learned_grid_start(model, scene, background, net, threshold=threshold))
+    return boxed_start(build, scene, network_inputs,
+                       lambda model, inputs: learned_grid_start(model, scene, background, net, threshold=threshold, inputs=inputs))
 
 
 def learned_grid_start(model, scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
-                       threshold: float = THRESHOLD) -> StartReport:
+                       threshold: float = THRESHOLD, inputs: StartInputs | str | None = None) -> StartReport:
     """Start ``model``'s coarse stage from ``net``'s occupancy of ``scene`` (the carve's densities and mean colours on
-    the points it fills); leave it untouched, with the reason, where the scene cannot be (as :func:`carve_blocker`)."""
+    the points it fills); leave it untouched, with the reason, where the scene cannot be (as :func:`carve_blocker`).
+    ``inputs``: ``model``'s :func:`network_inputs` when already read."""
     t0 = time.perf_counter()
-    views = carve_blocker(model, scene) or grid_views(model, scene)
-    if isinstance(views, str):
-        return StartReport(False, "occupancy", f"no learned start: {views}", round(time.perf_counter() - t0, 4), {})
-    feats, allowed = occupancy_inputs(views, model.size)
+    if inputs is None:
+        inputs = network_inputs(model, scene)
+    if isinstance(inputs, str):
+        return StartReport(False, "occupancy", f"no learned start: {inputs}", round(time.perf_counter() - t0, 4), {})
+    views, feats, allowed = inputs.views, inputs.features, inputs.allowed
     with torch.no_grad():
         occupied = ((torch.sigmoid(net.to(feats.device)(feats)) >= threshold) & allowed).reshape(-1)
     feats = feats.reshape(N_FEATURES, -1)
