@@ -23,7 +23,7 @@ deficit against scratch at any common evaluation time (scratch interpolated).
 Usage::
 
     flock /work/wt/bench.lock .venv/bin/python scripts/bench_priors.py --out runs/bench_priors --seed 11 [--workers 2] [--mlp]
-        [--occupancy-net zoo|NET.safetensors]
+        [--occupancy-net zoo|NET.safetensors] [--arms scratch,carve,routed]
 """
 
 from __future__ import annotations
@@ -56,8 +56,10 @@ EVAL_TIMES = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32
 """Wall seconds at which every arm's test PSNR is taken (the run in BENCHMARKS.md stopped at 32 s: under load a
 1000-iteration fit took up to 344 s, and the late part of its curves was seen only at the end)."""
 GRID_ARMS = ("scratch", "carve")
-"""Grid arms: ``scratch`` (tuned defaults) and ``carve`` (the visual-hull start, :mod:`nerfmeta.priors`); ``occupancy``
-(the learned occupancy start, :mod:`nerfmeta.priors.occupancy`) joins them with ``--occupancy-net``."""
+"""Default grid arms: ``scratch`` (tuned defaults) and ``carve`` (the visual-hull start, :mod:`nerfmeta.priors`);
+``occupancy`` (the learned occupancy start, :mod:`nerfmeta.priors.occupancy`) joins them with ``--occupancy-net``.
+``--arms`` may also name ``routed``: what ``nerfmeta fit SCENE`` (``--init auto``) does with ``--zoo``, routing on the
+clock."""
 
 
 @dataclass
@@ -167,10 +169,11 @@ def timed_fit(model, scene, fit_config, background, *, build_s: float, extra_tim
 
 
 def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, ...] = (),
-             occupancy_net: Path | None = None, start_coarse_iters: int | None = None) -> Curve:
+             occupancy_net: Path | None = None, start_coarse_iters: int | None = None, zoo_dir: Path | None = None) -> Curve:
     """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built (and, for
     ``occupancy``, before the network ``occupancy_net`` is read). The starts keep ``start_coarse_iters`` coarse steps
-    (None: :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`, scratch's)."""
+    (None: :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`, scratch's). ``routed``: the route ``nerfmeta fit SCENE``
+    takes with the zoo ``zoo_dir`` (:func:`nerfmeta.route.route_scene`, its time on the clock), then that arm."""
     from nerfmeta.data import load_scene
     from nerfmeta.fields.registry import build_model
     from nerfmeta.fields.voxel_grid import VoxelGridConfig
@@ -183,6 +186,17 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     t0 = time.perf_counter()
     config = VoxelGridConfig().for_scene(scene)
     note = ""
+    if arm == "routed":
+        from nerfmeta.fit.run import RunConfig
+        from nerfmeta.route import route_scene
+        from nerfmeta.zoo import load_zoo
+
+        route = route_scene(RunConfig(scene=str(scene_path), backbone="grid"), load_zoo(zoo_dir), 0)
+        if route.route not in ("scratch", "occupancy", "carve"):
+            raise ValueError(f"{scene_path}: routed to {route.init}, which this bench does not fit")
+        arm, note = route.route, f"route {route.route}; "
+        if arm == "occupancy":
+            occupancy_net = Path(route.init.partition(":")[2])
     if arm not in ("carve", "occupancy"):
         model = build_model("grid", config, scene.bounds, seed=0)
     else:  # as --init carve / --init occupancy do: in the silhouettes' box
@@ -197,7 +211,7 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
             model, report = boxed_start(build, scene, hull_inputs, lambda m, _: carve_grid_start(m, scene, background))
         else:
             model, report = learned_start(build, scene, background, load_occupancy_net(occupancy_net))
-        note = report.reason
+        note += report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
             model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
     build_s = time.perf_counter() - t0
@@ -310,10 +324,11 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
 
 def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
-    k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters = job
+    k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters, zoo_dir = job
     torch.set_num_threads(1)
     order = arms[k % len(arms):] + arms[: k % len(arms)]
-    curves = {arm: grid_arm(arm, path, iters, occupancy_net=occupancy_net, start_coarse_iters=start_coarse_iters)
+    curves = {arm: dataclasses.replace(grid_arm(arm, path, iters, occupancy_net=occupancy_net, start_coarse_iters=start_coarse_iters,
+                                                zoo_dir=zoo_dir), arm=arm)
               for arm in order}
     mlp: dict[str, Curve] = {}
     if zoo is not None:
@@ -377,7 +392,11 @@ def main(argv: list[str] | None = None) -> int:
             load_occupancy_net(args.occupancy_net)
         except ConfigError as err:
             p.error(str(err))
-    arms = tuple(a for a in args.arms.split(",") if a) + (("occupancy",) if args.occupancy_net else ())
+    arms = tuple(dict.fromkeys(tuple(a for a in args.arms.split(",") if a) + (("occupancy",) if args.occupancy_net else ())))
+    unknown = sorted(set(arms) - {"scratch", "carve", "occupancy", "routed"})
+    if unknown or ("occupancy" in arms and args.occupancy_net is None):
+        p.error(f"--arms: {', '.join(unknown) or 'occupancy'}: the grid arms are scratch, carve, routed and (with "
+                "--occupancy-net) occupancy")
     load_before = os.getloadavg()
     t_start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -386,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes = [s for s in scenes if s[0] in args.only.split(",")]
     results: dict[str, Any] = {}
     jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None, args.occupancy_net,
-             args.start_coarse_iters)
+             args.start_coarse_iters, args.zoo)
             for k, (name, group, path) in enumerate(scenes)]
     with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for name, res in pool.map(fit_scene, jobs):
