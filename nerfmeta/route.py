@@ -5,8 +5,7 @@ cannot lose to the scratch fit by construction of what it is allowed to try:
 
 1. the backbone is the one asked for (``--backbone``, else :data:`DEFAULT_BACKBONE`, the voxel
    grid: the fastest scratch fit); only the zoo's priors *of that backbone* are candidates
-   (a zoo holds one backbone; today the shipped zoo holds NeRF-MLP priors only, so the default
-   route is the scratch grid until grid priors exist);
+   (a zoo holds one backbone; today the shipped zoo holds NeRF-MLP weight priors only);
 2. the zoo's classifier looks at the scene's *training* views (the test views are the fit's
    evaluation and are never shown to any method) and names a category or answers "unknown":
    the candidates are that category's model, then the meta-learned initialisation (a scene to
@@ -18,7 +17,12 @@ cannot lose to the scratch fit by construction of what it is allowed to try:
    zoo was trained at, and the scene's images were composited on the prior's background (an
    opaque photograph has none: not an object scene of the zoo's kind);
 4. with no candidate left the route is scratch on the asked backbone, with the reason printed
-   and kept in ``summary.json["route"]`` beside every check (name, prior, pass/fail, figures).
+   and kept in ``summary.json["route"]`` beside every check (name, prior, pass/fail, figures);
+5. a scratch route on the voxel grid becomes the zoo's learned occupancy start (:func:`occupancy_route`: the grid's
+   coarse stage started from the scene's own training views) for an object scene with alpha whose views are within
+   :data:`OCCUPANCY_PX`, the sizes where it was measured never more than 0.1 dB behind the scratch grid on held-out
+   seen-category scenes; it needs no classifier, and where the views give no silhouettes it declines and the grid
+   starts from scratch.
 
 The routed fit runs into ``RUN/`` (a normal fit run folder). ``--compare`` fits baselines into
 ``RUN/compare/NAME/`` (:data:`BASELINES`): ``scratch`` is the *best* scratch fit, the voxel grid
@@ -54,13 +58,23 @@ from nerfmeta.zoo import Zoo, ZooEntry
 
 log = logging.getLogger(__name__)
 
-ROUTES = ("category", "meta", "carve", "scratch")
+ROUTES = ("category", "meta", "occupancy", "carve", "scratch")
 CARVE_ROUTE = False
 """Whether a scratch route on the voxel grid becomes the carved start (``--init carve``, :mod:`nerfmeta.priors`).
 Off: on held-out generated scenes it is far ahead early but not within 0.1 dB of scratch at every time: a concave
 object (an open lamp shade, seed 11) or one the hull's margin cuts into (a table on thin legs, seed 13) ends below
 scratch even at equal iterations, and the faster carved fit reaches the late fall of test PSNR sooner (BENCHMARKS.md,
 *Grid priors (#17)*, *Carved start: never behind*, *Carved start: concave objects and the early check*)."""
+OCCUPANCY_ROUTE = True
+"""Whether a scratch route on the voxel grid becomes the zoo's learned occupancy start (``--init occupancy``,
+:mod:`nerfmeta.priors.occupancy`) where it applies (:func:`occupancy_route`). On held-out generated object scenes at
+128 px it ends above the scratch grid on 21 of 22 and is never more than 0.1 dB behind it on 21 (every one of the 12
+seen-category scenes); at 64 px it is behind by more than that on 4 of 11, hence :data:`OCCUPANCY_PX`
+(BENCHMARKS.md, *Grid priors*)."""
+OCCUPANCY_PX = (96, 192)
+"""The longer side (pixels, as the fit loads the views) of the object scenes routed to the learned start: from 96 px
+(a coarse grid of 42 voxels a side; at 64 px, 28 a side, the scratch grid's own coarse stage finds the shape about
+as fast and the start fell behind) to 1.5x the largest size its network was trained and measured at (128 px)."""
 COMPARE_DIR = "compare"
 DEFAULT_BACKBONE = "grid"
 """The backbone of a fit that names none: the voxel grid, the fastest scratch fit."""
@@ -139,8 +153,9 @@ class Route:
     """Where a scene's fit starts, and why.
 
     Attributes:
-        route: ``category``, ``meta`` or ``scratch``.
-        init: the ``--init`` spec it resolves to (``category:DIR``, ``meta:DIR`` or ``scratch``).
+        route: one of :data:`ROUTES`.
+        init: the ``--init`` spec it resolves to (``category:DIR``, ``meta:DIR``, ``occupancy:NET``, ``carve`` or
+            ``scratch``).
         freeze: layers kept frozen (category route only).
         reason: one sentence for the user.
         category: the classifier's most probable known category (None without a classifier).
@@ -347,6 +362,57 @@ def carve_route(route: Route) -> Route:
     return dataclasses.replace(route, route="carve", init="carve", reason=reason)
 
 
+def occupancy_route(route: Route, net: Path | None, scene: SceneFacts | None) -> Route:
+    """``route`` with a scratch grid start replaced by the learned occupancy start of the network ``net`` where it
+    applies (pure): an object scene (its views have alpha) whose views' longer side is within :data:`OCCUPANCY_PX`.
+    Any other route is returned unchanged; a scratch grid route it does not apply to keeps scratch, with the checks
+    made added. The start needs no classifier: it reads the scene's own training views (and declines, the grid then
+    starting from scratch, where they give no silhouettes: ``summary.json["init_source"]`` says so).
+    """
+    if route.route != "scratch" or route.backbone != "grid" or net is None or scene is None:
+        return route
+    side, (lo, hi) = max(scene.resolution), OCCUPANCY_PX
+    sized = lo <= side <= hi
+    checks = (Check("resolution", "occupancy", sized, {"scene_px": side, "allowed_px": [lo, hi]},
+                    f"the scene's {side} px views are " + ("within" if sized else "outside")
+                    + f" the {lo}-{hi} px the learned start is routed at"),
+              Check("background", "occupancy", scene.background is not None,
+                    {"scene": None if scene.background is None else list(scene.background)},
+                    "the scene's views have alpha (an object scene)" if scene.background is not None
+                    else "the scene's images are opaque (no alpha): not an object scene like the network's"))
+    if not all(c.passed for c in checks):
+        return dataclasses.replace(route, checks=route.checks + checks,
+                                   reason=f"{route.reason} (no learned occupancy start: {_failed_text(checks)})")
+    reason = (f"the grid's coarse stage starts from the learned occupancy of the scene's own {side} px training views "
+              f"(the zoo's network, {net}); no classifier is needed for it")
+    return dataclasses.replace(route, route="occupancy", init=f"occupancy:{net}", reason=reason, checks=route.checks + checks)
+
+
+def occupancy_may_apply(config: RunConfig) -> bool:
+    """Whether :func:`occupancy_route` could apply to ``config.scene``, from one image's header: False when the scene's
+    first image (in name order) has no alpha or its longer side, as the fit reads it (``downscale``, ``max_side``), is
+    more than 2 px outside :data:`OCCUPANCY_PX`. Then a grid fit is routed without loading the scene twice (loading a
+    large capture takes seconds); else :func:`scene_facts` decides. Anything unreadable: True (the loader then reports
+    it with its own message)."""
+    from nerfmeta.data.images import IMAGE_SUFFIXES, image_has_alpha, image_shape
+    from nerfmeta.errors import SceneError
+
+    path = Path(config.scene)
+    first = next((p for p in sorted(path.rglob("*")) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), None) \
+        if path.is_dir() else None
+    if first is None:
+        return not path.is_file()  # a video or another single file is no object scene; a folder without images: the loader's
+    try:
+        side = max(image_shape(first)) / config.downscale
+        alpha = image_has_alpha(first)
+    except SceneError:
+        return True
+    if config.max_side:
+        side = min(side, config.max_side)
+    lo, hi = OCCUPANCY_PX
+    return alpha and lo - 2 <= side <= hi + 2
+
+
 def _score_text(score: Mapping[str, Any] | None) -> str:
     if not score:
         return "n/a"
@@ -401,12 +467,14 @@ def classify_scene(scene_path: str | Path, zoo: Zoo, background: tuple[float, fl
     return classify_views(classifier, views).to_json()
 
 
-def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int, *, carve: bool = CARVE_ROUTE) -> Route:
+def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int, *, carve: bool = CARVE_ROUTE,
+                occupancy: bool = OCCUPANCY_ROUTE) -> Route:
     """Read the scene's facts and the zoo's priors, classify the scene, decide; ``classify_s`` is the wall time it took.
 
-    Nothing is read or classified when there is no zoo or the zoo has no prior of ``config.backbone``, and the scene is
-    not classified when none of the zoo's priors applies to it (:func:`any_prior_applies`). With ``carve``, a scratch
-    grid route becomes the carved start (:func:`carve_route`).
+    Nothing is classified when there is no zoo or the zoo has no prior of ``config.backbone``, and the scene is
+    not classified when none of the zoo's priors applies to it (:func:`any_prior_applies`). With ``occupancy`` and a
+    zoo holding an occupancy network, a scratch grid route becomes the learned start where it applies
+    (:func:`occupancy_route`); with ``carve``, a scratch grid route left becomes the carved start (:func:`carve_route`).
     """
     t0 = time.perf_counter()
     prediction, scene, priors, unclassified = None, None, {}, False
@@ -417,6 +485,15 @@ def route_scene(config: RunConfig, zoo: Zoo | None, freeze: int, *, carve: bool 
         if not unclassified:
             prediction = classify_scene(config.scene, zoo, config.background)
     route = decide_route(prediction, zoo, freeze, backbone=config.backbone, scene=scene, priors=priors, unclassified=unclassified)
+    if occupancy and zoo is not None and zoo.occupancy_net is not None and route.route == "scratch" and config.backbone == "grid":
+        if scene is None and not occupancy_may_apply(config):
+            check = Check("object views", "occupancy", False, {"scene": str(config.scene)},
+                          f"the scene's images have no alpha or are far outside the {OCCUPANCY_PX[0]}-{OCCUPANCY_PX[1]} px "
+                          "the learned start is routed at (one image's header read)")
+            route = dataclasses.replace(route, checks=route.checks + (check,),
+                                        reason=f"{route.reason} (no learned occupancy start: {check.note})")
+        else:
+            route = occupancy_route(route, zoo.occupancy_net, scene or scene_facts(config))
     if carve:
         route = carve_route(route)
     return dataclasses.replace(route, classify_s=round(time.perf_counter() - t0, 3))

@@ -96,6 +96,11 @@ class Zoo:
         return next((e for e in self.entries if e.kind == "occupancy"), None)
 
     @property
+    def occupancy_net(self) -> Path | None:
+        """The occupancy network's file (``occupancy/model.safetensors``), if the zoo has one."""
+        return None if self.occupancy is None else self.occupancy.path / "model.safetensors"
+
+    @property
     def categories(self) -> dict[str, ZooEntry]:
         """Category -> its category model."""
         return {e.category: e for e in self.entries if e.kind == "category" and e.category}

@@ -26,6 +26,7 @@ from nerfmeta.fit.loop import FitConfig, StepRecord
 from nerfmeta.fit.run import RunConfig, default_backbone, run_fit
 from nerfmeta.init import FEED_FORWARD
 from nerfmeta.presets import PRESETS, Preset, describe, get_preset, preset_backbone
+from nerfmeta.route import OCCUPANCY_PX
 
 FREEZE_HELP = (
     "Layers are ordered input to output. nerf: trunk.0..trunk.{depth-1}, density, "
@@ -68,10 +69,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         notes={
             "init": "auto: with a zoo holding priors of the fit's backbone, classify the scene with the zoo's classifier and "
                     "start from its category model, or from the meta-learned initialisation for an unknown category, where "
-                    "that prior applies (backbone, box, resolution, background); else from scratch, saying why; "
+                    "that prior applies (backbone, box, resolution, background); a grid fit left to scratch starts from the "
+                    f"zoo's learned occupancy start on object views (alpha) of {OCCUPANCY_PX[0]}-{OCCUPANCY_PX[1]} px; "
+                    "else from scratch, saying why; "
                     "category:DIR is a 'nerfmeta pretrain category' model, meta:DIR a 'nerfmeta meta-train' one; a saved "
                     "init keeps its backbone config; carve and occupancy start the grid's coarse stage from the scene's "
-                    "own views (opt-in, see BENCHMARKS.md), occupancy with the network of the zoo (--zoo)",
+                    "own views, occupancy with the network of the zoo (--zoo)",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
             "drop_views": "comma-separated, e.g. images/r_4.png,images/r_15.png (a file name alone where it names one "
@@ -264,7 +267,7 @@ def zoo_occupancy_init(zoo: str | None) -> str:
     if found.occupancy is None:
         raise ConfigError(f"--init occupancy: the model zoo in {found.root} has no occupancy network (add one with "
                           "scripts/build_model_zoo --only occupancy, or name one: --init occupancy:NET.safetensors)")
-    return f"occupancy:{found.occupancy.path / 'model.safetensors'}"
+    return f"occupancy:{found.occupancy_net}"
 
 
 def run_auto(args: argparse.Namespace) -> int:

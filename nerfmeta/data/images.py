@@ -151,6 +151,16 @@ def image_shape(path: str | os.PathLike) -> tuple[int, int]:
     return int(height), int(width)
 
 
+def image_has_alpha(path: str | os.PathLike) -> bool:
+    """Whether an image file carries an alpha channel (or a transparent palette entry), from its header.
+
+    Raises:
+        SceneError: the file is missing or is not an image Pillow can open.
+    """
+    with _open(Path(path)) as image:
+        return image.mode in ("RGBA", "RGBa", "LA", "La", "PA") or "transparency" in image.info
+
+
 def check_pixel_limit(path: str | os.PathLike, height: int, width: int, max_pixels: int) -> None:
     """Raise :class:`SceneError` naming ``path`` when ``height * width`` exceeds ``max_pixels``."""
     if height * width > max_pixels:

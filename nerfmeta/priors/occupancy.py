@@ -6,8 +6,9 @@ start ends above the scratch grid on every design scene at 128 px (BENCHMARKS.md
 worth*). Here a small 3-D CNN (:class:`OccupancyNet`) guesses that occupancy from per-voxel multi-view features
 (:func:`point_features`), trained over generated collections whose exact shapes are known
 (:mod:`pretrain.occupancy`; the model zoo's ``occupancy`` entry). Everything works on the coarse grid's points in the
-scene's loaded frame, as the carve does. ``nerfmeta fit SCENE --init occupancy`` uses it; ``--init auto`` does not
-route to it (BENCHMARKS.md says where it still falls behind the scratch grid).
+scene's loaded frame, as the carve does. ``nerfmeta fit SCENE --init occupancy`` uses it, and so does the default
+route (``--init auto``) on object scenes of 96-192 px (:func:`nerfmeta.route.occupancy_route`; BENCHMARKS.md says where
+it still falls behind the scratch grid).
 """
 
 from __future__ import annotations
