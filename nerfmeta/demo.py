@@ -4,14 +4,18 @@ It generates two objects the zoo was never trained on (seeds the zoo build does 
 a category the zoo knows (a chair) and one of a category it has never seen (a vase). Each goes
 through ``nerfmeta fit SCENE --init auto --backbone ZOO_BACKBONE --compare scratch,scratch-nerf``
 (the zoo's backbone is named so that its priors are used; a plain ``nerfmeta fit`` with the
-shipped NeRF-MLP zoo fits the scratch grid): the zoo's classifier names its category or says
+shipped NeRF-MLP zoo fits the grid, from scratch at the demo's 32 px and from the learned occupancy start on object
+views of 96-192 px, :func:`nerfmeta.route.occupancy_route`): the zoo's classifier names its category or says
 "unknown", the fit starts from that category's model or from the meta-learned initialisation
 where it applies, and beside it run the *fair* baseline ``scratch``, the voxel grid from scratch
 with its tuned defaults given the routed fit's whole wall-clock time, and the second baseline
 ``scratch-nerf``, the same MLP from scratch with the routed fit's settings. The headline compares
 the routed fit with the scratch grid on the wall-clock axis (classification and loading
-included), and says so when the routed fit is behind. Then ``nerfmeta report`` gathers both into
-one report. Everything is made by the project itself, so it needs no data from outside.
+included), and says so when the routed fit is behind. Each object is also fitted as a plain ``nerfmeta fit SCENE
+--compare scratch`` fits it (``NAME_grid``): the voxel grid on the full-size views (96 px by default), by its default
+route, the learned occupancy start (:func:`nerfmeta.route.occupancy_route`), against the scratch grid. Then
+``nerfmeta report`` gathers every run into one report. Everything is made by the project itself, so it needs no data
+from outside.
 
 Without a zoo (``--zoo none``) the routed fits are scratch grid fits and there is nothing to compare.
 """
@@ -42,10 +46,11 @@ class DemoConfig:
     """Category of the first object (one the shipped zoo has a model for)."""
     unseen_category: str = "vase"
     """Category of the second object (one the shipped zoo has never seen)."""
-    resolution: int = 64
-    """Image size of the generated views (what the classifier reads)."""
-    downscale: float = bounded(2.0, low=1)
-    """Fits read the views reduced by this factor (32 x 32 by default, as the zoo's models were trained)."""
+    resolution: int = 96
+    """Image size of the generated views (what the classifier reads, and what the plain grid fits read)."""
+    downscale: float = bounded(3.0, low=1)
+    """The fits of the zoo's backbone read the views reduced by this factor (32 x 32 by default, as the zoo's models
+    were trained)."""
     views: int = bounded(16, low=1)
     """Training views per object."""
     test_views: int = bounded(8, low=1)
@@ -62,6 +67,11 @@ class DemoConfig:
     compare: tuple[str, ...] = ("scratch", "scratch-nerf")
     """Baselines fitted beside each routed fit (``scratch``: the tuned voxel grid, the headline's; ``scratch-nerf``:
     the MLP from scratch with the routed fit's settings)."""
+    grid_iters: int = bounded(1000, low=0)
+    """Iterations of each object's plain grid fit (what ``nerfmeta fit SCENE --compare scratch`` does: the voxel grid
+    on the full-size views, by its default route, beside the scratch grid); 0: none."""
+    grid_eval_every: int = bounded(25, low=1)
+    """Test PSNR every this many iterations of the plain grid fits."""
 
 
 @dataclass(frozen=True)
@@ -86,10 +96,14 @@ def run_demo(
     *,
     zoo: Zoo | None,
     overwrite: bool = False,
-    callbacks_for: Callable[[str, str], Sequence[Callback]] = lambda scene, fit: (),
+    callbacks_for: Callable[[str, str, FitConfig], Sequence[Callback]] = lambda run, fit, config: (),
     on_route: Callable[[str, Route], None] | None = None,
 ) -> DemoResult:
-    """Generate the two scenes into ``out/scenes``, classify-and-fit each into ``out/NAME``, report into ``out/report``.
+    """Generate the two scenes into ``out/scenes``, classify-and-fit each into ``out/NAME`` (the zoo's backbone) and
+    (``config.grid_iters``) ``out/NAME_grid`` (a plain grid fit), report into ``out/report``.
+
+    ``callbacks_for(run, fit, fit_config)`` gives the callbacks of the fit ``fit`` (``routed`` or a baseline's name)
+    of the run ``run`` (a key of :attr:`DemoResult.runs`).
 
     The demo folder follows :mod:`nerfmeta.runfolder`'s rules: it is built aside and swapped in when
     complete, and ``overwrite`` replaces only a demo folder of ours.
@@ -111,7 +125,8 @@ def _moved(result: DemoResult, built: Path, out: Path) -> DemoResult:
                       None if result.report is None else move(result.report), out)
 
 
-def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None, callbacks_for: Callable[[str, str], Sequence[Callback]],
+def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None,
+               callbacks_for: Callable[[str, str, FitConfig], Sequence[Callback]],
                on_route: Callable[[str, Route], None] | None) -> DemoResult:
     """:func:`run_demo` in the open folder ``out``."""
     coll = load_collection(generate_collection(demo_collection(config), out / "scenes"))
@@ -122,6 +137,8 @@ def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None, callbacks_for:
                     eval_views=config.eval_views)
     backbone = zoo.backbone if zoo is not None else "grid"
     model = dict(zoo_fit.get("model", {})) if zoo is not None else {}
+    grid_fit = FitConfig(iters=config.grid_iters, eval_every=config.grid_eval_every, checkpoint_every=0, seed=config.seed,
+                         eval_views=config.eval_views)
     scenes, runs, summaries = {}, {}, {}
     for record in coll.scenes:
         name = record.name
@@ -129,12 +146,16 @@ def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None, callbacks_for:
         scenes[name] = scene_path
         run = RunConfig(scene=str(scene_path), backbone=backbone, model=model, fit=fit, downscale=config.downscale)
         run = dataclasses.replace(run, snapshot_iters=tuple(i for i in SNAPSHOT_ITERS if i <= fit.iters) if zoo else ())
-        summaries[name] = classify_and_fit(
-            run, out / name, zoo=zoo, compare=config.compare if zoo is not None else (),
-            callbacks_for=lambda fit_name, n=name: callbacks_for(n, fit_name),
-            on_route=None if on_route is None else (lambda route, n=name: on_route(n, route)),
-        )
-        runs[name] = out / name
+        jobs = [(name, run, config.compare if zoo is not None else ())]
+        if config.grid_iters and zoo is not None and backbone != "grid":  # the plain fit: the grid, full size, its route
+            jobs.append((f"{name}_grid", RunConfig(scene=str(scene_path), backbone="grid", fit=grid_fit), ("scratch",)))
+        for key, run_config, compare in jobs:
+            summaries[key] = classify_and_fit(
+                run_config, out / key, zoo=zoo, compare=compare if zoo is not None else (),
+                callbacks_for=lambda fit_name, k=key, c=run_config.fit: callbacks_for(k, fit_name, c),
+                on_route=None if on_route is None else (lambda route, k=key: on_route(k, route)),
+            )
+            runs[key] = out / key
     report = None
     if zoo is not None:
         write_report(list(runs.values()), out / "report")
