@@ -9,17 +9,16 @@ import pytest
 
 import nerfmeta.route as route_module
 from nerfmeta.cli import main
-from nerfmeta.route import OCCUPANCY_PX, Route, SceneFacts, occupancy_route
+from nerfmeta.route import OCCUPANCY_PX, Route, occupancy_route
 from nerfmeta.zoo import load_zoo
 
 NET = Path("/zoo/occupancy/model.safetensors")
 SCRATCH = Route("scratch", "scratch", 0, "the model zoo holds no grid prior (only nerf ones): fitting the grid from scratch",
                 backbone="grid")
-BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 
-def facts(side: int, background=(1.0, 1.0, 1.0)) -> SceneFacts:
-    return SceneFacts(BOX, (side, side), background)
+def facts(side: int, alpha: bool = True) -> tuple[int, bool]:
+    return side, alpha
 
 
 def test_an_object_scene_within_the_sizes_gets_the_learned_start():
@@ -45,7 +44,7 @@ def test_the_sizes_include_their_ends(side):
 
 
 def test_a_photograph_keeps_scratch():
-    route = occupancy_route(SCRATCH, NET, facts(128, background=None))
+    route = occupancy_route(SCRATCH, NET, facts(128, alpha=False))
     assert route.route == "scratch" and [c.name for c in route.checks if not c.passed] == ["background"]
     assert "opaque" in route.reason
 
@@ -55,7 +54,7 @@ def test_other_routes_and_a_zoo_without_a_network_are_left_alone():
                   Route("scratch", "scratch", 0, "nerf scratch", backbone="nerf")):
         assert occupancy_route(route, NET, facts(128)) == route
     assert occupancy_route(SCRATCH, None, facts(128)) == SCRATCH
-    assert occupancy_route(SCRATCH, NET, None) == SCRATCH
+    assert occupancy_route(SCRATCH, NET, None) == SCRATCH  # no readable image: the loader will say why
 
 
 GRID = ["--set", "num_voxels=1728", "--set", "coarse_num_voxels=512", "--set", "coarse_iters=2", "--set", "growth_steps=[]"]
@@ -78,8 +77,8 @@ def test_a_plain_fit_with_the_zoo_routes_to_the_learned_start_and_compares_with_
     assert "learned occupancy" in capsys.readouterr().out
 
 
-def test_a_plain_fit_of_small_views_keeps_the_scratch_grid_without_loading_the_scene_twice(tiny_scene, tmp_path, zoo_dir,
-                                                                                          monkeypatch):
+def test_a_plain_fit_of_small_views_keeps_the_scratch_grid_without_loading_the_scene_to_route_it(tiny_scene, tmp_path,
+                                                                                                   zoo_dir, monkeypatch):
     def no_load(config):
         raise AssertionError("the route loaded the scene")
 
@@ -88,30 +87,35 @@ def test_a_plain_fit_of_small_views_keeps_the_scratch_grid_without_loading_the_s
     assert main(["fit", str(tiny_scene), "--out", str(out), "--zoo", str(zoo_dir), *GRID, *FAST]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["route"]["route"] == "scratch" and summary["init"] == "scratch"
-    assert [(c["name"], c["passed"]) for c in summary["route"]["checks"] if c["prior"] == "occupancy"] == [("object views", False)]
-    assert "no learned occupancy start" in summary["route"]["reason"]
+    assert {c["name"]: c["passed"] for c in summary["route"]["checks"] if c["prior"] == "occupancy"} == {
+        "resolution": False, "background": True}
+    assert "no learned occupancy start" in summary["route"]["reason"] and "32 px views are outside" in summary["route"]["reason"]
 
 
-def test_the_header_precheck(tiny_scene, tmp_path):
+def test_the_views_are_read_from_one_header_as_the_loader_sizes_them(tiny_scene, tmp_path):
     from PIL import Image
 
+    from nerfmeta.data import load_scene
     from nerfmeta.fit.run import RunConfig
-    from nerfmeta.route import occupancy_may_apply
+    from nerfmeta.route import scene_facts, view_facts
 
     def config(scene, **kw):
         return RunConfig(scene=str(scene), backbone="grid", **kw)
 
-    assert not occupancy_may_apply(config(tiny_scene))  # 32 px RGBA: too small
+    for downscale in (1.0, 2.0, 3.0):  # the loader's own size, without loading
+        loaded = load_scene(tiny_scene, downscale=downscale)
+        assert view_facts(config(tiny_scene, downscale=downscale)) == (max(loaded.height, loaded.width), True)
+    given = scene_facts(config(tiny_scene))
+    assert view_facts(config(tiny_scene), given) == (max(given.resolution), True)
     big = tmp_path / "big"
     (big / "train").mkdir(parents=True)
-    Image.new("RGBA", (128, 128)).save(big / "train" / "r_0.png")
-    assert occupancy_may_apply(config(big))
-    assert not occupancy_may_apply(config(big, downscale=2.0))  # read at 64 px
-    assert occupancy_may_apply(config(big, downscale=1.3))  # 98 px
+    Image.new("RGBA", (128, 100)).save(big / "train" / "r_0.png")
+    assert view_facts(config(big)) == (128, True) and view_facts(config(big, downscale=1.3)) == (98, True)
     Image.new("RGB", (128, 128)).save(big / "train" / "r_0.png")
-    assert not occupancy_may_apply(config(big))  # opaque: a photograph
+    assert view_facts(config(big)) == (128, False)  # opaque: a photograph
     Image.new("RGBA", (4000, 3000)).save(big / "train" / "r_0.png")
-    assert not occupancy_may_apply(config(big))  # 1600 px after --max-side
-    assert occupancy_may_apply(config(big, max_side=150))
+    assert view_facts(config(big)) == (1000, True)  # --max-side 1600 halves until it fits: 1/4
+    assert view_facts(config(big, max_side=150)) == (125, True)
     (big / "train" / "r_0.png").write_bytes(b"not a png")
-    assert occupancy_may_apply(config(big))  # unreadable: the loader says so, not the route
+    assert view_facts(config(big)) is None  # unreadable: the loader says so, not the route
+    assert view_facts(config(tmp_path / "clip.mp4")) is None
