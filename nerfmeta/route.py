@@ -70,13 +70,14 @@ OCCUPANCY_ROUTE = True
 :mod:`nerfmeta.priors.occupancy`) where it applies (:func:`occupancy_route`). On 33 held-out generated object scenes at
 128 px it ends above the scratch grid on 31 and is never more than 0.1 dB behind it on every one of the 18
 seen-category scenes; two unseen sofas end 0.14-0.15 dB below it over three fit seeds, less than the scratch grid's own
-spread over fit seeds; at 96 px it ends above on 11 of 11; at 64 px it is behind by more than 0.1 dB on 4 of 11, hence
+spread over fit seeds; at 96 px it ends above on 22 of 22 (two seeds), at 160 px on 8 of 8; at 64 px it is behind
+by more than 0.1 dB on 4 of 11, hence
 :data:`OCCUPANCY_PX` (BENCHMARKS.md, *Grid priors*, session 32)."""
 OCCUPANCY_PX = (96, 192)
 """The longer side (pixels, as the fit loads the views) of the object scenes routed to the learned start: from 96 px
 (a coarse grid of 42 voxels a side; at 64 px, 28 a side, the scratch grid's own coarse stage finds the shape about
 as fast and the start fell behind) to 1.5x the largest size its network was trained at, 128 px (the zoo's
-:data:`RESOLUTION_FACTOR`; measured at 96, 100 (lego) and 128 px, not above)."""
+:data:`RESOLUTION_FACTOR`; measured at 96, 100 (lego), 128 and 160 px)."""
 COMPARE_DIR = "compare"
 DEFAULT_BACKBONE = "grid"
 """The backbone of a fit that names none: the voxel grid, the fastest scratch fit."""
