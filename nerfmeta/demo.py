@@ -151,7 +151,7 @@ def _demo_into(out: Path, config: DemoConfig, *, zoo: Zoo | None,
             jobs.append((f"{name}_grid", RunConfig(scene=str(scene_path), backbone="grid", fit=grid_fit), ("scratch",)))
         for key, run_config, compare in jobs:
             summaries[key] = classify_and_fit(
-                run_config, out / key, zoo=zoo, compare=compare if zoo is not None else (),
+                run_config, out / key, zoo=zoo, compare=compare,
                 callbacks_for=lambda fit_name, k=key, c=run_config.fit: callbacks_for(k, fit_name, c),
                 on_route=None if on_route is None else (lambda route, k=key: on_route(k, route)),
             )

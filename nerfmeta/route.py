@@ -399,14 +399,13 @@ def view_facts(config: RunConfig, scene: SceneFacts | None = None) -> tuple[int,
     the loader then reports it with its own message)."""
     if scene is not None:
         return max(scene.resolution), scene.background is not None
+    from classifier.inputs import _first_image
     from nerfmeta.data.common import side_factor
-    from nerfmeta.data.images import IMAGE_SUFFIXES, image_has_alpha, image_shape
+    from nerfmeta.data.images import image_has_alpha, image_shape
     from nerfmeta.errors import SceneError
 
     path = Path(config.scene)
-    if not path.is_dir():
-        return None
-    first = next((p for p in sorted(path.rglob("*")) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), None)
+    first = _first_image(path) if path.is_dir() else None
     if first is None:
         return None
     try:

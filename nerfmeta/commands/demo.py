@@ -59,11 +59,10 @@ def run(args: argparse.Namespace) -> int:
     bars: list[ProgressBar] = []
 
     def callbacks_for(run: str, fit: str, fit_config: FitConfig):
-        iters = fit_config.iters if run.endswith("_grid") or zoo is None else args.iters or zoo.fit.get("iters", 300)
         print(f"{run}: fitting {'the routed model' if fit == 'routed' else 'the ' + fit + ' baseline'}", flush=True)
         if bars:
             bars[-1].close()  # one bar at a time
-        bars.append(ProgressBar(FitConfig(iters=iters)))
+        bars.append(ProgressBar(FitConfig(iters=fit_config.iters)))  # the run's routed fit: its iterations
         return [bars[-1]]
 
     def on_route(scene: str, route) -> None:
