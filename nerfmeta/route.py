@@ -68,11 +68,11 @@ scratch even at equal iterations, and the faster carved fit reaches the late fal
 OCCUPANCY_ROUTE = True
 """Whether a scratch route on the voxel grid becomes the zoo's learned occupancy start (``--init occupancy``,
 :mod:`nerfmeta.priors.occupancy`) where it applies (:func:`occupancy_route`). On 33 held-out generated object scenes at
-128 px it ends above the scratch grid on 31 and is never more than 0.1 dB behind it on every one of the 18
-seen-category scenes; two unseen sofas end 0.14-0.15 dB below it over three fit seeds, less than the scratch grid's own
-spread over fit seeds; at 96 px it ends above on 22 of 22 (two seeds), at 160 px on 8 of 8; at 64 px it is behind
-by more than 0.1 dB on 4 of 11, hence
-:data:`OCCUPANCY_PX` (BENCHMARKS.md, *Grid priors*, session 32)."""
+128 px (four collection seeds, 44 scenes) it ends above the scratch grid on 42 with the shipped threshold
+(:data:`~nerfmeta.priors.occupancy.THRESHOLD`); an airplane 0.03 dB and an unseen sofa 0.52 dB below (0.33 dB over
+three fit seeds: it is not a guarantee on categories the network never saw); at 96 px it ended above on 22 of 22 (two
+seeds), at 160 px on 8 of 8; at 64 px it is behind by more than 0.1 dB on 4 of 11, hence :data:`OCCUPANCY_PX`
+(BENCHMARKS.md, *Grid priors*, sessions 32 and 33)."""
 OCCUPANCY_PX = (96, 192)
 """The longer side (pixels, as the fit loads the views) of the object scenes routed to the learned start: from 96 px
 (a coarse grid of 42 voxels a side; at 64 px, 28 a side, the scratch grid's own coarse stage finds the shape about
