@@ -71,8 +71,9 @@ OCCUPANCY_ROUTE = True
 128 px (four collection seeds) it ends above the scratch grid on 42 with the shipped threshold
 (:data:`~nerfmeta.priors.occupancy.THRESHOLD`); an airplane 0.03 dB and an unseen sofa 0.52 dB below (0.33 dB over
 three fit seeds: it is not a guarantee on categories the network never saw); at 96 px it ended above on 22 of 22 (two
-seeds, with the first threshold, 0.1; the five of them fitted again with 0.02 too), at 160 px on 8 of 8 (0.1); at 64 px it is behind by more than 0.1 dB on 4 of 11, hence :data:`OCCUPANCY_PX`
-(BENCHMARKS.md, *Grid priors*, sessions 32 and 33)."""
+seeds, with the first threshold, 0.1; the five of them fitted again with 0.02 too), at 160 px on 8 of 8 (0.1); at
+64 px it is behind by more than 0.1 dB on 4 of 11, hence :data:`OCCUPANCY_PX` (BENCHMARKS.md, *Grid priors*, sessions
+32 and 33)."""
 OCCUPANCY_PX = (96, 192)
 """The longer side (pixels, as the fit loads the views) of the object scenes routed to the learned start: from 96 px
 (a coarse grid of 42 voxels a side; at 64 px, 28 a side, the scratch grid's own coarse stage finds the shape about

@@ -14,7 +14,7 @@ from conftest import TINY_ZOO
 from nerfmeta.cli import main
 from nerfmeta.errors import ConfigError
 from nerfmeta.io import save_tensors, sha256_file
-from nerfmeta.priors.occupancy import N_FEATURES, OccupancyNet, load_occupancy_net
+from nerfmeta.priors.occupancy import N_FEATURES, THRESHOLD, OccupancyNet, load_occupancy_net
 from nerfmeta.zoo import MANIFEST, load_zoo, write_manifest
 from pretrain.occupancy import OccupancyTrainConfig, OccupancyVolume, train_occupancy_net
 from pretrain.zoo import add_occupancy
@@ -137,8 +137,10 @@ def test_the_zoo_build_lists_its_network_and_adds_it_to_an_older_zoo(zoo_dir, tm
 
 
 def test_the_shipped_zoo_has_the_measured_network():
-    """model_zoo/'s network is the one BENCHMARKS.md measures: width 16, 33k weights, trained on seeds 1 and 2."""
+    """model_zoo/'s network is the one BENCHMARKS.md measures: width 16, 33k weights, trained on seeds 1 and 2; its
+    record names the threshold the start uses."""
     zoo = load_zoo(Path(__file__).resolve().parents[1] / "model_zoo")
-    net = load_occupancy_net(zoo.occupancy.path / "model.safetensors")
+    net = load_occupancy_net(zoo.occupancy_net)
     assert net.net[0].out_channels == 16 and sum(p.numel() for p in net.parameters()) == zoo.occupancy.metrics["weights"]
     assert [c["seed"] for c in zoo.occupancy.config["collections"]] == [1, 2]
+    assert zoo.occupancy.config["threshold"] == THRESHOLD

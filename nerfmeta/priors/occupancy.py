@@ -40,7 +40,8 @@ short and 0.27-0.29 dB below the scratch grid after 1000 steps; 0.02 ends them 0
 128 px scenes 42 end above scratch with 0.02, 40 with 0.1: unseen categories +0.15 dB on average, seen ones -0.15 (the
 mugs -0.4 to -0.8: their cups fill up more), every seen one but an airplane (-0.03) still above scratch. A third
 unseen sofa ends below with either (-0.52, -0.63). The points between the two thresholds need the full start
-density: started at scratch's alpha or at 0.01-0.03 a step they change nothing (BENCHMARKS.md, *Grid priors*, "Session 33")."""
+density: started at scratch's alpha or at 0.01-0.03 a step they change nothing (BENCHMARKS.md, *Grid priors*,
+"Session 33")."""
 
 
 def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,
