@@ -172,7 +172,8 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
              occupancy_net: Path | None = None, start_coarse_iters: int | None = None, zoo_dir: Path | None = None) -> Curve:
     """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built (and, for
     ``occupancy``, before the network ``occupancy_net`` is read). The starts keep ``start_coarse_iters`` coarse steps
-    (None: :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`, scratch's). ``routed``: the route ``nerfmeta fit SCENE``
+    (None: what ``nerfmeta fit`` gives them, :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS` for the carve and
+    :data:`~nerfmeta.priors.occupancy.COARSE_ITERS` for a learned start). ``routed``: the route ``nerfmeta fit SCENE``
     takes with the zoo ``zoo_dir`` (:func:`nerfmeta.route.route_scene`, its time on the clock), then that arm."""
     from nerfmeta.data import load_scene
     from nerfmeta.fields.registry import build_model
@@ -200,9 +201,12 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     if arm not in ("carve", "occupancy"):
         model = build_model("grid", config, scene.bounds, seed=0)
     else:  # as --init carve / --init occupancy do: in the silhouettes' box
-        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, load_occupancy_net
+        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config, load_occupancy_net
 
-        config = dataclasses.replace(config, coarse_iters=start_coarse_iters or CARVE_COARSE_ITERS)
+        if start_coarse_iters:
+            config = dataclasses.replace(config, coarse_iters=start_coarse_iters)
+        else:  # as the fit does: the carve keeps scratch's coarse stage, a learned start its own
+            config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS) if arm == "carve" else learned_start_config(config)
 
         def build(box: torch.Tensor):
             return build_model("grid", config, box, seed=0)
@@ -368,7 +372,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="add the learned occupancy start as an arm: 'zoo' for --zoo's network (what --init occupancy "
                    "uses), or a file from scripts/probe_occupancy_start.py train")
     p.add_argument("--start-coarse-iters", type=int, default=None, metavar="N",
-                   help="coarse steps the carve and occupancy arms keep (default: scratch's, 100)")
+                   help="coarse steps the carve and occupancy arms keep (default: as nerfmeta fit gives them, 100 for the "
+                   "carve and 200 for a learned start)")
     args = p.parse_args(argv)
     if args.report:
         doc = json.loads((args.out / "results.json").read_text())

@@ -23,7 +23,7 @@ it measured.
 Usage::
 
     .venv/bin/python scripts/probe_occupancy_start.py train COLLECTION [COLLECTION ...] --out NET.safetensors [--width 16] [--steps 2000]
-    .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000]
+    .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000] [--coarse-iters N]
 """
 
 from __future__ import annotations
@@ -80,11 +80,14 @@ def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
     raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS[:TAU]")
 
 
-def start(arm: str, scene_path: Path, scene, background: torch.Tensor):
-    """The arm's model, started, and a note (what it occupied, how long building it took)."""
-    if arm == "scratch":
+def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_iters: int | None = None):
+    """The arm's model, started, and a note (what it occupied, how long building it took); ``coarse_iters`` None: the
+    carve's coarse stage for the starts (:data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`), the defaults for scratch."""
+    if arm == "scratch" and coarse_iters is None:
         return scratch_grid(scene), "no start"
-    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), coarse_iters=CARVE_COARSE_ITERS)
+    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), coarse_iters=coarse_iters or CARVE_COARSE_ITERS)
+    if arm == "scratch":
+        return build_model("grid", config, scene.bounds, seed=0), f"no start, {config.coarse_iters} coarse steps"
     model = build_model("grid", config, scene.bounds, seed=0)
     if arm == "carve":
         return model, carve_grid_start(model, scene, background).reason
@@ -105,7 +108,7 @@ def fit_arm(args: argparse.Namespace) -> int:
     """One arm on one scene: test PSNR at the marked iterations, one JSON line."""
     scene = load_scene(args.scene)
     background = torch.tensor(scene.background, dtype=torch.float32)
-    model, note = start(args.arm, Path(args.scene), scene, background)
+    model, note = start(args.arm, Path(args.scene), scene, background, args.coarse_iters)
     views = list(scene.splits["test"])
     psnr: dict[int, float] = {}
 
@@ -139,6 +142,9 @@ def main() -> int:
     f.add_argument("scene", help="a generated scene (truth arms need its collection.json)")
     f.add_argument("arm", help="scratch, carve, truth:D, hull:M:K or net:WEIGHTS:TAU")
     f.add_argument("--marks", type=int, nargs="+", default=[50, 100, 200, 400, 700, 1000])
+    f.add_argument("--coarse-iters", type=int, default=None, metavar="N",
+                   help="coarse steps of the arm's grid (default: the carve's 100 for the starts, the defaults for "
+                   "scratch; --init occupancy keeps 200)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     try:

@@ -47,6 +47,35 @@ def test_fit_from_a_named_network_records_the_file_and_the_start(tiny_scene, tmp
     assert "--init occupancy: the coarse grid starts from the learned occupancy" in capsys.readouterr().out
 
 
+def test_a_learned_start_keeps_a_longer_coarse_stage_unless_the_user_sets_one(tiny_scene, tmp_path, monkeypatch):
+    """200 coarse steps carve a too-full start before the fine stage inherits it (BENCHMARKS.md, *Grid priors*,
+    "Session 34"); a user's ``--set coarse_iters`` wins, and a start that does not apply leaves the scratch grid."""
+    import nerfmeta.priors.occupancy as occupancy
+    from nerfmeta.fields.voxel_grid import VoxelGridConfig
+    from nerfmeta.fit.run import RunConfig, build_initial_model, run_scene
+    from nerfmeta.priors.start import StartReport
+
+    net = saved_net(tmp_path / "net.safetensors", 10.0)
+    small = {"num_voxels": 1728, "coarse_num_voxels": 512, "growth_steps": []}
+
+    def built(settings):
+        config = RunConfig(scene=str(tiny_scene), backbone="grid", init=f"occupancy:{net}", model=settings)
+        model, model_config, info = build_initial_model(config, run_scene(config), torch.device("cpu"))
+        assert model.config == model_config  # config.json records the grid the fit runs
+        return model_config.coarse_iters, info.meta["applied"]
+
+    scratch = VoxelGridConfig().coarse_iters
+    assert occupancy.COARSE_ITERS > scratch
+    assert built(small) == (occupancy.COARSE_ITERS, True)
+    assert built({**small, "coarse_iters": 7}) == (7, True)
+
+    def no_start(build, scene, background, net):
+        return build(scene.bounds), StartReport(False, "occupancy", "no learned start: a test", 0.0, {})
+
+    monkeypatch.setattr(occupancy, "learned_start", no_start)
+    assert built(small) == (scratch, False)
+
+
 def test_bare_occupancy_takes_the_zoos_network(tiny_scene, tmp_path, zoo_dir):
     out = tmp_path / "run"
     assert main(["fit", str(tiny_scene), "--out", str(out), "--init", "occupancy", "--zoo", str(zoo_dir), *GRID, *FAST]) == 0

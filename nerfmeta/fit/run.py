@@ -208,7 +208,9 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
     Feed-forward (``carve``, ``occupancy:NET``, grid only): the scratch model with its coarse grid started from the
     scene's own views (:mod:`nerfmeta.priors`), both in the box the silhouettes allow
     (:func:`~nerfmeta.priors.occupancy.boxed_start`), or left as it is where the start does not apply; the
-    :class:`~nerfmeta.priors.start.StartReport` is the init's ``meta`` (``summary.json["init_source"]``).
+    :class:`~nerfmeta.priors.start.StartReport` is the init's ``meta`` (``summary.json["init_source"]``). A learned
+    start keeps a longer coarse stage (:func:`~nerfmeta.priors.occupancy.learned_start_config`) unless ``--set
+    coarse_iters`` says otherwise; the config returned is the one the model was built with.
 
     Raises:
         ConfigError: a bad init spec or folder, another backbone or architecture, a ``freeze``
@@ -235,14 +237,23 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
 
         if kind == "scratch":
             return build(scene.bounds), model_config, InitInfo(kind, None, None, {}, (), ())
-        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start
+        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config
         from nerfmeta.priors.start import carve_grid_start
 
         background = torch.tensor(config.background, dtype=torch.float32, device=device)
         if net is None:
             model, report = boxed_start(build, scene, hull_inputs, lambda m, _: carve_grid_start(m, scene, background))
         else:
-            model, report = learned_start(build, scene, background, net)
+            start_config = learned_start_config(model_config, config.model)
+
+            def build_started(bounds: torch.Tensor) -> RadianceModel:
+                return build_model(config.backbone, start_config, bounds, seed=config.fit.seed, device=device)
+
+            model, report = learned_start(build_started, scene, background, net)
+            if report.applied:
+                model_config = start_config
+            elif start_config != model_config:  # no start: the scratch grid, as the route's rule says
+                model = build(scene.bounds)
         log.info("--init %s: %s", kind, report.reason)
         path, digest = (None, None) if folder is None else (folder.resolve(), sha256_file(folder))
         return model, model_config, InitInfo(kind, path, digest, report.as_json(), (), ())

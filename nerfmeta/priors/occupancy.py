@@ -17,7 +17,7 @@ import dataclasses
 import os
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Collection
 
 import torch
 import torch.nn as nn
@@ -42,6 +42,16 @@ mugs -0.4 to -0.8: their cups fill up more), every seen one but an airplane (-0.
 unseen sofa ends below with either (-0.52, -0.63). The points between the two thresholds need the full start
 density: started at scratch's alpha or at 0.01-0.03 a step they change nothing (BENCHMARKS.md, *Grid priors*,
 "Session 33")."""
+COARSE_ITERS = 200
+"""Coarse steps a learned start keeps (a scratch grid keeps ``VoxelGridConfig.coarse_iters``, 100). The start fills a
+little more than the object, and the coarse stage (three times the fine stage's density learning rate) is where the
+surplus is carved; the fine stage inherits whatever is left. At fixed iterations (1000 steps) on the 11 held-out scenes
+of collection seed 73 at 128 px and three of seed 41, 200 coarse steps instead of 100 ended every started scene
+higher (+0.07 to +1.03 dB; the unseen sofa that ended 0.52 dB below scratch now 0.52 above), and a coarse step costs
+less than a fine one. A scratch grid ends higher with 200 on those scenes too (+0.09 to +0.75 dB) but not on lego in
+a 60-s budget (32.93 / 31.70 dB against 33.39 / 33.31 over two seeds: the longer coarse stage grows density off the object that
+widen the fine box up to 4.5-fold), so the scratch default stays at 100; a learned start's coarse grid starts empty
+outside its guess (BENCHMARKS.md, *Grid priors*, "Session 34")."""
 
 
 def point_features(points: torch.Tensor, masks: torch.Tensor, images: torch.Tensor, poses: torch.Tensor,
@@ -226,6 +236,12 @@ def boxed_start(build: Callable[[torch.Tensor], Any], scene: Scene, prepare: Cal
     figures = {**report.figures, "box": [[round(float(v), 4) for v in row] for row in model.bounds.tolist()],
                "box_from_silhouettes": tightened}
     return model, dataclasses.replace(report, build_s=round(time.perf_counter() - t0, 4), figures=figures)
+
+
+def learned_start_config(config, given: Collection[str] = ()):
+    """``config`` (a resolved ``VoxelGridConfig``) as a learned start fits it: :data:`COARSE_ITERS` coarse steps, unless
+    ``coarse_iters`` is among the ``given`` settings (a user's ``--set``), which win."""
+    return config if "coarse_iters" in given else dataclasses.replace(config, coarse_iters=COARSE_ITERS)
 
 
 def learned_start(build: Callable[[torch.Tensor], Any], scene: Scene, background: torch.Tensor, net: OccupancyNet, *,
