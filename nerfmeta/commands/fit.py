@@ -26,6 +26,7 @@ from nerfmeta.fit.loop import FitConfig, StepRecord
 from nerfmeta.fit.run import RunConfig, default_backbone, run_fit
 from nerfmeta.init import FEED_FORWARD
 from nerfmeta.presets import PRESETS, Preset, describe, get_preset, preset_backbone
+from nerfmeta.priors.occupancy import COARSE_ITERS as OCCUPANCY_COARSE_ITERS
 from nerfmeta.route import OCCUPANCY_PX
 
 FREEZE_HELP = (
@@ -74,7 +75,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     "else from scratch, saying why; "
                     "category:DIR is a 'nerfmeta pretrain category' model, meta:DIR a 'nerfmeta meta-train' one; a saved "
                     "init keeps its backbone config; carve and occupancy start the grid's coarse stage from the scene's "
-                    "own views, occupancy with the network of the zoo (--zoo)",
+                    f"own views, occupancy with the network of the zoo (--zoo) and a {OCCUPANCY_COARSE_ITERS}-step "
+                    "coarse stage (--set coarse_iters=N wins)",
             "freeze": FREEZE_HELP + "; with --init auto: the zoo's recommended K on the category route",
             "background": "white, black or R,G,B",
             "drop_views": "comma-separated, e.g. images/r_4.png,images/r_15.png (a file name alone where it names one "
