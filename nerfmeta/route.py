@@ -72,7 +72,7 @@ OCCUPANCY_ROUTE = True
 (:data:`~nerfmeta.priors.occupancy.THRESHOLD`); an airplane 0.03 dB and an unseen sofa 0.52 dB below (0.33 dB over
 three fit seeds: it is not a guarantee on categories the network never saw). With the start's 200 coarse steps
 (:data:`~nerfmeta.priors.occupancy.COARSE_ITERS`, session 34) that sofa ends 0.52 dB above, and a fresh seed's 11
-scenes on the clock all end above and are never more than 0.1 dB behind (three seeds, 33 scenes: all above at the
+scenes on the clock all end above and are never more than 0.1 dB behind (four seeds, 44 scenes: all above at the
 end, two of seed 73's dip 0.13 and 0.59 dB behind after a grid growth); at 96 px it ended above on 22 of 22 (two
 seeds, with the first threshold, 0.1; the five of them fitted again with 0.02 too), at 160 px on 8 of 8 (0.1); at
 64 px it is behind by more than 0.1 dB on 4 of 11, hence :data:`OCCUPANCY_PX` (BENCHMARKS.md, *Grid priors*, sessions

@@ -48,7 +48,7 @@ little more than the object, and the coarse stage (three times the fine stage's 
 surplus is carved; the fine stage inherits whatever is left. At fixed iterations (1000 steps) on the 11 held-out scenes
 of collection seed 73 at 128 px and three of seed 41, 200 coarse steps instead of 100 ended every started scene
 higher (+0.07 to +1.03 dB; the unseen sofa that ended 0.52 dB below scratch now 0.52 above), and a coarse step costs
-less than a fine one. On the clock (seeds 79, 73 and 47) all 33 end above scratch; two dip 0.13 and 0.59 dB behind
+less than a fine one. On the clock (seeds 79, 73, 47 and 59) all 44 end above scratch; two dip 0.13 and 0.59 dB behind
 it mid-fit, just after a grid growth, which now comes 100 steps later. A scratch grid ends higher with 200 on the seed-73
 scenes too (+0.09 to +0.75 dB) but not on lego in a 60-s budget (32.93 / 31.70 dB against 33.39 / 33.31 over two
 seeds: its longer coarse stage grows density off the object, which widens the fine box up to 4.5-fold), so the
