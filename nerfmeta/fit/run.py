@@ -232,8 +232,8 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
             net = load_occupancy_net(folder)  # before any model is built: a bad file is one line
         model_config = config.model_config(scene)
 
-        def build(bounds: torch.Tensor) -> RadianceModel:
-            return build_model(config.backbone, model_config, bounds, seed=config.fit.seed, device=device)
+        def build(bounds: torch.Tensor, grid_config: Any = model_config) -> RadianceModel:
+            return build_model(config.backbone, grid_config, bounds, seed=config.fit.seed, device=device)
 
         if kind == "scratch":
             return build(scene.bounds), model_config, InitInfo(kind, None, None, {}, (), ())
@@ -245,11 +245,7 @@ def build_initial_model(config: RunConfig, scene, device: torch.device) -> tuple
             model, report = boxed_start(build, scene, hull_inputs, lambda m, _: carve_grid_start(m, scene, background))
         else:
             start_config = learned_start_config(model_config, config.model)
-
-            def build_started(bounds: torch.Tensor) -> RadianceModel:
-                return build_model(config.backbone, start_config, bounds, seed=config.fit.seed, device=device)
-
-            model, report = learned_start(build_started, scene, background, net)
+            model, report = learned_start(lambda bounds: build(bounds, start_config), scene, background, net)
             if report.applied:
                 model_config = start_config
             elif start_config != model_config:  # no start: the scratch grid, as the route's rule says
