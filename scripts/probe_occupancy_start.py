@@ -23,7 +23,7 @@ it measured.
 Usage::
 
     .venv/bin/python scripts/probe_occupancy_start.py train COLLECTION [COLLECTION ...] --out NET.safetensors [--width 16] [--steps 2000]
-    .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000] [--coarse-iters N]
+    .venv/bin/python scripts/probe_occupancy_start.py fit SCENE ARM [--marks 50 100 200 400 700 1000] [--coarse-iters N] [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ from nerfmeta.fields.voxel_grid import VoxelGridConfig  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402
 from nerfmeta.fit.loop import FitConfig, fit  # noqa: E402
 from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, start_colours, visual_hull  # noqa: E402
+from nerfmeta.config import parse_overrides  # noqa: E402
 from nerfmeta.errors import ConfigError  # noqa: E402
 from nerfmeta.io import save_tensors  # noqa: E402
 from nerfmeta.priors.occupancy import grid_views, learned_grid_start, load_occupancy_net  # noqa: E402
@@ -80,12 +81,16 @@ def occupied_points(arm: str, scene_path: Path, scene, model) -> torch.Tensor:
     raise SystemExit(f"unknown arm {arm!r}: scratch, carve, truth:D, hull:M:K or net:WEIGHTS[:TAU]")
 
 
-def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_iters: int | None = None):
+def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_iters: int | None = None,
+          overrides: dict | None = None):
     """The arm's model, started, and a note (what it occupied, how long building it took); ``coarse_iters`` None: the
-    carve's coarse stage for the starts (:data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`), the defaults for scratch."""
-    if arm == "scratch" and coarse_iters is None:
+    carve's coarse stage for the starts (:data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`), the defaults for scratch;
+    ``overrides``: other grid settings (``--set``)."""
+    if arm == "scratch" and coarse_iters is None and not overrides:
         return scratch_grid(scene), "no start"
-    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), coarse_iters=coarse_iters or CARVE_COARSE_ITERS)
+    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), **(overrides or {}))
+    if arm != "scratch" or coarse_iters is not None:
+        config = dataclasses.replace(config, coarse_iters=coarse_iters or CARVE_COARSE_ITERS)
     if arm == "scratch":
         return build_model("grid", config, scene.bounds, seed=0), f"no start, {config.coarse_iters} coarse steps"
     model = build_model("grid", config, scene.bounds, seed=0)
@@ -106,9 +111,10 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_it
 
 def fit_arm(args: argparse.Namespace) -> int:
     """One arm on one scene: test PSNR at the marked iterations, one JSON line."""
+    overrides = parse_overrides(args.set, VoxelGridConfig)  # a bad setting named before the scene is read
     scene = load_scene(args.scene)
     background = torch.tensor(scene.background, dtype=torch.float32)
-    model, note = start(args.arm, Path(args.scene), scene, background, args.coarse_iters)
+    model, note = start(args.arm, Path(args.scene), scene, background, args.coarse_iters, overrides)
     views = list(scene.splits["test"])
     psnr: dict[int, float] = {}
 
@@ -145,6 +151,8 @@ def main() -> int:
     f.add_argument("--coarse-iters", type=int, default=None, metavar="N",
                    help="coarse steps of the arm's grid (default: the carve's 100 for the starts, the defaults for "
                    "scratch; --init occupancy keeps 200)")
+    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a grid setting, as `nerfmeta fit --set` takes it (e.g. growth_density=project)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     try:
