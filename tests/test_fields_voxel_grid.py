@@ -23,6 +23,8 @@ from nerfmeta.fields.grid_ops import (
     interp_cf,
     interp_coords,
     interp_gather,
+    project_cf,
+    resample_cf,
     trilinear_gather,
 )
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
@@ -121,6 +123,47 @@ def test_interp_coords_equals_the_gather_in_either_memory_layout():
         torch.testing.assert_close(interp_coords(g_, x), want, rtol=0, atol=1e-12)
     corners = grid_coords(grid_points(BOX.double(), size).reshape(-1, 3), BOX.double(), size).contiguous()
     torch.testing.assert_close(interp_coords(grid, corners), grid.reshape(5, -1), rtol=0, atol=1e-12)
+
+
+def _hat_field(values: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The 1-D piecewise-linear function with ``values`` on evenly spaced corners of [0, 1], at ``t`` (float64)."""
+    x = t * (len(values) - 1)
+    i = x.floor().clamp(max=len(values) - 2).long()
+    return values[i] + (x - i) * (values[i + 1] - values[i])
+
+
+def test_projection_leaves_a_residual_orthogonal_to_every_new_hat_and_interpolation_does_not():
+    """The L2 projection, checked against brute-force quadrature (a million points) rather than its own exact formula."""
+    old = torch.randn(1, 7, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    t = (torch.arange(1_000_000, dtype=torch.float64) + 0.5) / 1_000_000
+    f = _hat_field(old[0, :, 0, 0], t)
+    hats = [_hat_field(torch.eye(10, dtype=torch.float64)[i], t) for i in range(10)]
+    for move, orthogonal in ((project_cf, True), (resample_cf, False)):
+        new = move(old, (10, 2, 2))[0, :, 0, 0]
+        residual = f - _hat_field(new, t)
+        inner = torch.stack([(residual * h).mean() for h in hats]).abs().max()
+        assert (inner < 1e-9) == orthogonal, (move.__name__, float(inner))
+
+
+def test_projection_keeps_the_mean_fields_the_lattice_holds_and_the_same_lattice():
+    gen = torch.Generator().manual_seed(1)
+    old = torch.randn(2, 5, 6, 7, dtype=torch.float64, generator=gen)
+
+    def mean(g):  # the exact mean of a trilinear field: trapezoid weights per axis
+        w = [torch.full((n,), 1.0 / (n - 1), dtype=torch.float64) for n in g.shape[1:]]
+        for v in w:
+            v[0] = v[-1] = 0.5 / (len(v) - 1)
+        return torch.einsum("cijk,i,j,k->c", g, *w)
+
+    new = project_cf(old, (9, 8, 12))
+    assert torch.allclose(mean(new), mean(old), atol=1e-12)
+    assert not torch.allclose(mean(resample_cf(old, (9, 8, 12))), mean(old), atol=1e-3)
+    assert torch.allclose(project_cf(old, (5, 6, 7)), old, atol=1e-12)
+    nested = project_cf(old, (9, 11, 13))  # every old corner is a new one: the field fits, nothing changes
+    assert torch.allclose(nested, resample_cf(old, (9, 11, 13)), atol=1e-12)
+    axes = torch.meshgrid(*(torch.linspace(0, 1, n, dtype=torch.float64) for n in (5, 6, 7)), indexing="ij")
+    affine = (0.3 + 2 * axes[0] - axes[1] + 0.5 * axes[2])[None]
+    assert torch.allclose(project_cf(affine, (8, 9, 11)), resample_cf(affine, (8, 9, 11)), atol=1e-12)
 
 
 def test_test_time_render_equals_the_training_path(stages, scene):
@@ -239,6 +282,21 @@ def test_a_growth_due_late_in_the_fit_is_skipped_with_the_ones_after_it():
 def test_growth_cutoff_must_be_a_fraction():
     with pytest.raises(Exception, match="growth_cutoff"):
         dataclasses.replace(SMALL, growth_cutoff=0.0)
+    with pytest.raises(ConfigError, match="growth_density='cubic'.*project or interp"):
+        dataclasses.replace(SMALL, growth_density="cubic")
+
+
+def test_a_projected_density_renders_closer_to_the_grid_before_its_growth_than_an_interpolated_one(scene, stages):
+    rays = _test_view(scene)
+    before = _render(stages.before_growth, rays)
+    after = {}
+    for how in ("project", "interp"):
+        model = copy.deepcopy(stages.before_growth)
+        model.config = dataclasses.replace(model.config, growth_density=how)
+        model.begin_step(stages.grow_at, None)
+        after[how] = _psnr(_render(model, rays).rgb, before.rgb)
+        assert torch.equal(model.features, resample_cf(stages.before_growth.features, model.size))  # features: interpolated
+    assert after["project"] > after["interp"] + 1.0, after
 
 
 def _ball_model(skipping=True):
