@@ -282,6 +282,10 @@ def test_a_growth_due_late_in_the_fit_is_skipped_with_the_ones_after_it():
 def test_growth_cutoff_must_be_a_fraction():
     with pytest.raises(Exception, match="growth_cutoff"):
         dataclasses.replace(SMALL, growth_cutoff=0.0)
+
+
+def test_growth_density_names_one_of_its_two_ways():
+    assert SMALL.growth_density == "interp"  # the default: its smoothing pays later in the fit (BENCHMARKS.md)
     with pytest.raises(ConfigError, match="growth_density='cubic'.*project or interp"):
         dataclasses.replace(SMALL, growth_density="cubic")
 
