@@ -203,7 +203,7 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     else:  # as --init carve / --init occupancy do: in the silhouettes' box
         from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config, load_occupancy_net
 
-        if start_coarse_iters:
+        if start_coarse_iters is not None:  # 0 too: no coarse stage at all
             config = dataclasses.replace(config, coarse_iters=start_coarse_iters)
         else:  # as the fit does: the carve keeps scratch's coarse stage, a learned start its own
             config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS) if arm == "carve" else learned_start_config(config)

@@ -52,7 +52,7 @@ from nerfmeta.errors import ConfigError  # noqa: E402
 from nerfmeta.io import save_tensors  # noqa: E402
 from nerfmeta.priors.occupancy import grid_views, learned_grid_start, load_occupancy_net  # noqa: E402
 from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start, load_occupied_start  # noqa: E402
-from pretrain.occupancy import (OccupancyTrainConfig, occupancy_volume, print_log, scratch_grid,  # noqa: E402
+from pretrain.occupancy import (OccupancyTrainConfig, occupancy_volume, print_log,  # noqa: E402
                                 train_occupancy_net, true_distance)
 
 def train(args: argparse.Namespace) -> int:
@@ -86,14 +86,12 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_it
     """The arm's model, started, and a note (what it occupied, how long building it took); ``coarse_iters`` None: the
     carve's coarse stage for the starts (:data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`), the defaults for scratch;
     ``overrides``: other grid settings (``--set``)."""
-    if arm == "scratch" and coarse_iters is None and not overrides:
-        return scratch_grid(scene), "no start"
     config = dataclasses.replace(VoxelGridConfig().for_scene(scene), **(overrides or {}))
     if arm != "scratch" or coarse_iters is not None:
-        config = dataclasses.replace(config, coarse_iters=coarse_iters or CARVE_COARSE_ITERS)
-    if arm == "scratch":
-        return build_model("grid", config, scene.bounds, seed=0), f"no start, {config.coarse_iters} coarse steps"
+        config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS if coarse_iters is None else coarse_iters)
     model = build_model("grid", config, scene.bounds, seed=0)
+    if arm == "scratch":
+        return model, "no start" if coarse_iters is None and not overrides else f"no start, {config.coarse_iters} coarse steps"
     if arm == "carve":
         return model, carve_grid_start(model, scene, background).reason
     if arm.startswith("net:"):
