@@ -169,12 +169,14 @@ def timed_fit(model, scene, fit_config, background, *, build_s: float, extra_tim
 
 
 def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, ...] = (),
-             occupancy_net: Path | None = None, start_coarse_iters: int | None = None, zoo_dir: Path | None = None) -> Curve:
+             occupancy_net: Path | None = None, start_coarse_iters: int | None = None, zoo_dir: Path | None = None,
+             overrides: dict[str, Any] | None = None) -> Curve:
     """Fit the grid arm ``arm`` on a scene; the wall clock starts before the scene's model is built (and, for
     ``occupancy``, before the network ``occupancy_net`` is read). The starts keep ``start_coarse_iters`` coarse steps
     (None: what ``nerfmeta fit`` gives them, :data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS` for the carve and
     :data:`~nerfmeta.priors.occupancy.COARSE_ITERS` for a learned start). ``routed``: the route ``nerfmeta fit SCENE``
-    takes with the zoo ``zoo_dir`` (:func:`nerfmeta.route.route_scene`, its time on the clock), then that arm."""
+    takes with the zoo ``zoo_dir`` (:func:`nerfmeta.route.route_scene`, its time on the clock), then that arm.
+    ``overrides``: grid settings (``--set``) given to every arm alike, last, over the arm's own."""
     from nerfmeta.data import load_scene
     from nerfmeta.fields.registry import build_model
     from nerfmeta.fields.voxel_grid import VoxelGridConfig
@@ -185,6 +187,11 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     background = torch.tensor(scene.background, dtype=torch.float32)
     fit_config = FitConfig(iters=iters, eval_every=0, checkpoint_every=0, final_ssim=False)
     t0 = time.perf_counter()
+    overrides = overrides or {}
+
+    def settled(config: VoxelGridConfig) -> VoxelGridConfig:
+        return dataclasses.replace(config, **overrides)
+
     config = VoxelGridConfig().for_scene(scene)
     note = ""
     if arm == "routed":
@@ -199,7 +206,7 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
         if arm == "occupancy":
             occupancy_net = Path(route.init.partition(":")[2])
     if arm not in ("carve", "occupancy"):
-        model = build_model("grid", config, scene.bounds, seed=0)
+        model = build_model("grid", settled(config), scene.bounds, seed=0)
     else:  # as --init carve / --init occupancy do: in the silhouettes' box
         from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config, load_occupancy_net
 
@@ -207,6 +214,7 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
             config = dataclasses.replace(config, coarse_iters=start_coarse_iters)
         else:  # as the fit does: the carve keeps scratch's coarse stage, a learned start its own
             config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS) if arm == "carve" else learned_start_config(config)
+        config = settled(config)
 
         def build(box: torch.Tensor):
             return build_model("grid", config, box, seed=0)
@@ -217,7 +225,7 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
             model, report = learned_start(build, scene, background, load_occupancy_net(occupancy_net))
         note += report.reason
         if not report.applied:  # the route's rule: no start, the scratch defaults
-            model = build_model("grid", VoxelGridConfig().for_scene(scene), scene.bounds, seed=0)
+            model = build_model("grid", settled(VoxelGridConfig().for_scene(scene)), scene.bounds, seed=0)
     build_s = time.perf_counter() - t0
     times, psnrs, its, wall, final = timed_fit(model, scene, fit_config, background, build_s=build_s, extra_times=extra_times)
     return Curve(arm, scene_path.name, "", times, psnrs, its, round(build_s, 4), round(wall, 3), round(final, 4), note)
@@ -328,11 +336,11 @@ def table(results: dict[str, Any], arms: tuple[str, ...], base: str) -> list[str
 
 def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
-    k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters, zoo_dir = job
+    k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters, zoo_dir, overrides = job
     torch.set_num_threads(1)
     order = arms[k % len(arms):] + arms[: k % len(arms)]
     curves = {arm: dataclasses.replace(grid_arm(arm, path, iters, occupancy_net=occupancy_net, start_coarse_iters=start_coarse_iters,
-                                                zoo_dir=zoo_dir), arm=arm)
+                                                zoo_dir=zoo_dir, overrides=overrides), arm=arm)
               for arm in order}
     mlp: dict[str, Curve] = {}
     if zoo is not None:
@@ -374,6 +382,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--start-coarse-iters", type=int, default=None, metavar="N",
                    help="coarse steps the carve and occupancy arms keep (default: as nerfmeta fit gives them, 100 for the "
                    "carve and 200 for a learned start)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a grid setting, as `nerfmeta fit --set` takes it, given to every grid arm alike (scratch "
+                   "included, so the comparison stays fair); repeatable")
     args = p.parse_args(argv)
     if args.report:
         doc = json.loads((args.out / "results.json").read_text())
@@ -382,8 +393,15 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(tables(doc["results"], tuple(doc["arms"]), any("mlp_figures" in r for r in doc["results"].values()))))
         return 0
     torch.set_num_threads(1)
+    from nerfmeta.config import parse_overrides
+    from nerfmeta.errors import ConfigError
+    from nerfmeta.fields.voxel_grid import VoxelGridConfig
+
+    try:  # a bad setting named before any scene is made
+        overrides = parse_overrides(args.set, VoxelGridConfig)
+    except ConfigError as err:
+        p.error(str(err))
     if args.occupancy_net is not None:  # a bad file named before any fit starts
-        from nerfmeta.errors import ConfigError
         from nerfmeta.priors.occupancy import load_occupancy_net
         from nerfmeta.zoo import load_zoo
 
@@ -410,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes = [s for s in scenes if s[0] in args.only.split(",")]
     results: dict[str, Any] = {}
     jobs = [(k, name, group, path, arms, args.iters, args.zoo if args.mlp else None, args.occupancy_net,
-             args.start_coarse_iters, args.zoo)
+             args.start_coarse_iters, args.zoo, overrides)
             for k, (name, group, path) in enumerate(scenes)]
     with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for name, res in pool.map(fit_scene, jobs):
@@ -421,7 +439,8 @@ def main(argv: list[str] | None = None) -> int:
             (args.out / "results.json").write_text(json.dumps(results, indent=1))
     doc = {"date": datetime.date.today().isoformat(), "load_before": load_before, "load_after": os.getloadavg(),
            "minutes": round((time.perf_counter() - t_start) / 60, 2), "seed": args.seed, "resolution": args.resolution,
-           "iters": args.iters, "arms": arms, "start_coarse_iters": args.start_coarse_iters, "results": results}
+           "iters": args.iters, "arms": arms, "start_coarse_iters": args.start_coarse_iters, "set": args.set,
+           "results": results}
     (args.out / "results.json").write_text(json.dumps(doc, indent=1))
     lines = tables(results, arms, args.mlp)
     (args.out / "table.md").write_text("\n".join(lines) + "\n")
