@@ -28,7 +28,7 @@ from nerfmeta.fields.grid_ops import (
     total_variation,
     trilinear_gather,
 )
-from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
+from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig, growth_mode
 from nerfmeta.fit.loop import FitConfig, FitState, fit
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.metrics import mse_to_psnr
@@ -296,10 +296,29 @@ def test_growth_cutoff_must_be_a_fraction():
         dataclasses.replace(SMALL, growth_cutoff=0.0)
 
 
-def test_growth_density_names_one_of_its_two_ways():
+def test_growth_density_names_one_of_its_two_ways_or_one_per_growth():
     assert SMALL.growth_density == "interp"  # the default: its smoothing pays later in the fit (BENCHMARKS.md)
-    with pytest.raises(ConfigError, match="growth_density='cubic'.*project or interp"):
-        dataclasses.replace(SMALL, growth_density="cubic")
+    for bad in ("cubic", "project,cubic", "project,", ""):
+        with pytest.raises(ConfigError, match="growth_density=.*project or interp"):
+            dataclasses.replace(SMALL, growth_density=bad)
+    assert [growth_mode("project,interp", g) for g in range(4)] == ["project", "interp", "interp", "interp"]
+    assert [growth_mode("interp,project,interp", g) for g in range(4)] == ["interp", "project", "interp", "interp"]
+    assert [growth_mode("project", g) for g in range(3)] == ["project"] * 3
+
+
+def test_a_list_of_growth_ways_moves_each_growth_its_own_way(scene):
+    config = dataclasses.replace(SMALL, coarse_iters=0, growth_steps=(1, 2), growth_density="project,interp")
+    model = _model(config, bounds=scene.bounds)
+    with torch.no_grad():
+        model.density.normal_(generator=torch.Generator().manual_seed(5))
+    moved = []
+    for step in (1, 2):
+        old = model.density.detach().clone()
+        assert model.begin_step(step, None).params_changed
+        moved.append(model.density.detach())
+        expected = {1: project_cf, 2: resample_cf}[step](old, model.size)
+        assert torch.equal(moved[-1], expected), step
+    assert not torch.equal(project_cf(old, model.size), resample_cf(old, model.size))  # the two ways differ here
 
 
 def test_a_projected_density_renders_closer_to_the_grid_before_its_growth_than_an_interpolated_one(scene, stages):

@@ -110,6 +110,17 @@ is scale-free again. The other groups keep the fit's ``adam_eps``: a tiny epsilo
 and MLP cost 1.5 dB at alpha 1e-4 (noisy low-gradient voxels then take full steps), on the density
 alone it cost nothing."""
 
+GROWTH_MODES = ("interp", "project")
+"""The ways the density grid moves onto a grown lattice (``VoxelGridConfig.growth_density``)."""
+
+
+def growth_mode(spec: str, growth: int) -> str:
+    """The way of growth number ``growth`` (0 the first) in a ``growth_density`` spec: one mode for every growth, or a
+    comma-separated list, one per growth, whose last entry stands for every growth after it."""
+    modes = spec.split(",")
+    return modes[min(growth, len(modes) - 1)]
+
+
 GRID_META_HINTS = MetaHints(
     algos=("fomaml", "reptile"),
     why_not="--algo maml needs second-order gradients, which the grid backbone does not support (grid "
@@ -225,13 +236,15 @@ class VoxelGridConfig:
     growth_steps: tuple[int, ...] = (100, 200, 300)
     """Fine-stage steps at which the grids double their voxel count."""
     growth_density: str = "interp"
-    """How the density grid moves onto the grown lattice: ``interp`` (trilinear resampling at the new corners, as
-    DirectVoxGO does) or ``project`` (the L2 projection of its field, :func:`~nerfmeta.fields.grid_ops.project_cf`).
-    The feature grid is always interpolated. Interpolation smooths the density's surfaces (the new lattice is not
-    nested in the old), which is most of the growth's dip: on a generated 128 px table the test PSNR fell 1.04 dB at
-    the first growth and was still 0.28 dB down 25 steps later; projected, it does not fall. But the smoothing pays
-    later: from a learned start, 1000-step fits ended lower projected on all 11 scenes of a generated collection
-    (BENCHMARKS.md, *The growth dip is the density's interpolation*), so ``interp`` stays the default."""
+    """How the density grid moves onto the grown lattice at each growth: ``interp`` (trilinear resampling at the new
+    corners, as DirectVoxGO does) or ``project`` (the L2 projection of its field, :func:`~nerfmeta.fields.grid_ops.project_cf`),
+    one way for every growth or a comma-separated list, one per growth in order, its last entry standing for the
+    growths after it (``project,interp``: the first growth projected, the rest interpolated; :func:`growth_mode`). The
+    feature grid is always interpolated. Interpolation smooths the density's surfaces (the new lattice is not nested in
+    the old), which is most of the growth's dip: on a generated 128 px table the test PSNR fell 1.04 dB at the first
+    growth and was still 0.28 dB down 25 steps later; projected, it does not fall. But the smoothing pays later: from
+    a learned start, 1000-step fits ended lower with every growth projected on all 11 scenes of a generated collection
+    (BENCHMARKS.md, *The growth dip is the density's interpolation*)."""
     growth_cutoff: float = 0.7
     """A growth falling due after this fraction of the fit's length (its iterations or time budget) is skipped, with
     the ones after it: a grid grown that late has too few steps left to use its new voxels, and each step and every
@@ -289,7 +302,8 @@ class VoxelGridConfig:
             ("occupancy_every", self.occupancy_every >= 0, "use 0 (never) or more"),
             ("growth_steps", list(self.growth_steps) == sorted(set(self.growth_steps)) and all(s > 0 for s in self.growth_steps),
              "use increasing positive fine-stage steps, e.g. [100, 200]"),
-            ("growth_density", self.growth_density in ("project", "interp"), "use project or interp"),
+            ("growth_density", all(m in GROWTH_MODES for m in self.growth_density.split(",")),
+             "use project or interp, or one of them per growth, comma-separated (e.g. project,interp)"),
             ("growth_cutoff", 0.0 < self.growth_cutoff <= 1.0, "use a fraction of the fit in (0, 1], e.g. 0.7"),
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
@@ -787,7 +801,7 @@ class VoxelGrid(RadianceModel):
         self.size, self.voxel = voxel_layout(self.bounds, self._fine_num_voxels())
         for name in ("density", "features"):  # frozen grids stay frozen
             old = self._parameters[name]
-            move = project_cf if name == "density" and self.config.growth_density == "project" else resample_cf
+            move = project_cf if name == "density" and growth_mode(self.config.growth_density, self.level - 1) == "project" else resample_cf
             setattr(self, name, nn.Parameter(move(old.data, self.size), requires_grad=old.requires_grad))
 
     def _prune_mask(self) -> None:
