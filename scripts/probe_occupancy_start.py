@@ -85,10 +85,11 @@ def start(arm: str, scene_path: Path, scene, background: torch.Tensor, coarse_it
           overrides: dict | None = None):
     """The arm's model, started, and a note (what it occupied, how long building it took); ``coarse_iters`` None: the
     carve's coarse stage for the starts (:data:`~nerfmeta.priors.start.CARVE_COARSE_ITERS`), the defaults for scratch;
-    ``overrides``: other grid settings (``--set``)."""
-    config = dataclasses.replace(VoxelGridConfig().for_scene(scene), **(overrides or {}))
+    ``overrides``: other grid settings (``--set``), applied last, so they win as ``nerfmeta fit --set`` does."""
+    config = VoxelGridConfig().for_scene(scene)
     if arm != "scratch" or coarse_iters is not None:
         config = dataclasses.replace(config, coarse_iters=CARVE_COARSE_ITERS if coarse_iters is None else coarse_iters)
+    config = dataclasses.replace(config, **(overrides or {}))
     model = build_model("grid", config, scene.bounds, seed=0)
     if arm == "scratch":
         return model, "no start" if coarse_iters is None and not overrides else f"no start, {config.coarse_iters} coarse steps"

@@ -311,13 +311,10 @@ def test_a_list_of_growth_ways_moves_each_growth_its_own_way(scene):
     model = _model(config, bounds=scene.bounds)
     with torch.no_grad():
         model.density.normal_(generator=torch.Generator().manual_seed(5))
-    moved = []
-    for step in (1, 2):
+    for step, move in ((1, project_cf), (2, resample_cf)):
         old = model.density.detach().clone()
         assert model.begin_step(step, None).params_changed
-        moved.append(model.density.detach())
-        expected = {1: project_cf, 2: resample_cf}[step](old, model.size)
-        assert torch.equal(moved[-1], expected), step
+        assert torch.equal(model.density.detach(), move(old, model.size)), step
     assert not torch.equal(project_cf(old, model.size), resample_cf(old, model.size))  # the two ways differ here
 
 
