@@ -14,11 +14,13 @@ import math
 
 import pytest
 import torch
+from autograd_graph import count_nodes
 from torch.func import functional_call
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
 from nerfmeta.data.scene import RayBatch
+from nerfmeta.fields.grid_kernels import fused_available, fused_lookups
 from nerfmeta.fields.nerf_mlp import NerfMLP, NerfMLPConfig
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 from nerfmeta.fit.checkpoint import CHECKPOINT_NAME, load_checkpoint, restore_model
@@ -316,27 +318,19 @@ def test_functional_call_with_trainable_tensors_still_differentiates_frozen_laye
     assert params["trunk.0.weight"].grad is not None
 
 
-def _count_nodes(tensor: torch.Tensor, name: str) -> int:
-    seen, stack, count = set(), [tensor.grad_fn], 0
-    while stack:
-        node = stack.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
-        count += name in type(node).__name__
-        stack.extend(next_fn for next_fn, _ in node.next_functions)
-    return count
-
-
-def test_frozen_density_grid_builds_no_gather_backward():
+@pytest.mark.parametrize("fused", [True, False])
+def test_frozen_density_grid_builds_no_gather_backward(fused):
+    if fused and not fused_available():
+        pytest.skip("numba is not installed")
     model = _blob_grid(view_dependent=True)
     model.begin_step(1, None)
     rays = _rays()
-    assert _count_nodes(model(rays, background=WHITE).rgb, "TrilinearGather") == 2  # density and features
-    model.freeze_first(1)
-    out = model(rays, background=WHITE).rgb
-    assert _count_nodes(out, "TrilinearGather") == 1  # features only: no graph through the density
-    out.sum().backward()
+    with fused_lookups(fused):  # the lookup nodes: _TrilinearCoordsBackward (fused) or _TrilinearGatherBackward
+        assert count_nodes(model(rays, background=WHITE).rgb, "Trilinear") == 2  # density and features
+        model.freeze_first(1)
+        out = model(rays, background=WHITE).rgb
+        assert count_nodes(out, "Trilinear") == 1  # features only: no graph through the density
+        out.sum().backward()
     assert model.density.grad is None and model.features.grad is not None
 
 

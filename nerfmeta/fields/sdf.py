@@ -48,7 +48,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent, photometric_mse
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.encodings import GRID_ENCODINGS, EncodingChoice, build_encoding, encoding_config
-from nerfmeta.fields.grid_ops import interp_gather
+from nerfmeta.fields.grid_kernels import interp_points
 from nerfmeta.render.estimators import OccupancyGrid, dilate, grid_points, split_sections, values_near
 from nerfmeta.render.volume import render_packed
 
@@ -461,7 +461,7 @@ class SdfField(RadianceModel):
         if self.config.view_dependent:
             parts.append(positional_encoding(directions.index_select(0, ray_idx).to(x.dtype), self.config.dir_freqs))
         if self.config.color_grid:
-            parts.append(interp_gather(self.color_grid, x.detach(), UNIT_BOX.to(x)))
+            parts.append(interp_points(self.color_grid, x.detach(), UNIT_BOX.to(x)))
         h = torch.cat(parts + [feature], dim=-1)
         for layer in self.color[:-1]:
             h = F.relu(layer(h))

@@ -38,8 +38,10 @@ the fine stage's occupancy cache) marches every ``stepsize`` voxels through the 
 layout and drops samples whose nearest cache voxel is off before anything is evaluated
 (``empty_space_skipping``; what remains is ``RenderOutput.samples_evaluated``); the shared
 compositor (:func:`~nerfmeta.render.volume.render_packed`) asks for colour only where a sample's
-compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in the coarse stage). Grid
-lookups use :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
+compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in the coarse stage). Training
+lookups on a CPU use the fused kernels of :mod:`~nerfmeta.fields.grid_kernels` (numba: a sample's corners,
+weights and values in one compiled loop, its gradient scattered in another; the embedding is then the corner
+coordinates), elsewhere, or without numba, :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
 computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders (no
 gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
 on channels-last copies of the colour grids, made once per whole-view render, :meth:`VoxelGrid.render_session`,
@@ -70,6 +72,7 @@ from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Decision, Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
+from nerfmeta.fields.grid_kernels import fused_available, trilinear_coords
 from nerfmeta.fields.grid_ops import (
     ChannelsLastCopies,
     corners_from_coords,
@@ -833,7 +836,9 @@ class VoxelGrid(RadianceModel):
         """Post-activated density per world unit (per contracted unit in a contracted space).
 
         The embedding is the trilinear corners (indices, weights), (8, N) each, shared by the colour
-        lookups. Without gradient (test-time renders) it is the corner coordinates (3, N) alone, and
+        lookups; with the fused CPU kernels (:func:`~nerfmeta.fields.grid_kernels.trilinear_coords`), which
+        recompute them in registers, the corner coordinates (3, N). Without gradient (test-time renders) it is
+        the corner coordinates (3, N) alone, and
         every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy of
         a colour grid, kept for a whole view inside :meth:`render_session`, else made when the samples outnumber
         an eighth of its voxels): the same values, faster.
@@ -843,6 +848,9 @@ class VoxelGrid(RadianceModel):
         x = grid_coords(points, self.bounds, self.size).contiguous()
         if not torch.is_grad_enabled():
             raw = interp_coords(self._density_grid(), x)[0]
+            return F.softplus(raw + self.shift) / self.unit, (x,)
+        if fused_available() and x.device.type == "cpu":  # training on a CPU: the fused kernels take coordinates
+            raw = trilinear_coords(self._density_grid(), x)[0]
             return F.softplus(raw + self.shift) / self.unit, (x,)
         idx, w = corners_from_coords(x, self.size)
         raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
@@ -855,8 +863,10 @@ class VoxelGrid(RadianceModel):
     def _colour_values(self, name: str, embedding: tuple[torch.Tensor, ...], sel: torch.Tensor | None) -> torch.Tensor:
         """(C, K) values of the colour grid ``name`` at the samples ``sel`` (all when None) of ``embedding``."""
         grid = getattr(self, name)
-        if len(embedding) == 1:  # test time: corner coordinates
+        if len(embedding) == 1:  # corner coordinates: test time, or training with the fused kernels
             x = embedding[0] if sel is None else take_columns(embedding[0], sel)
+            if torch.is_grad_enabled():
+                return trilinear_coords(grid, x)
             # the copy costs less than it saves when kept for a whole view, or for this many samples
             if self._render_copies.keeping or 8 * x.shape[1] >= grid[0].numel():
                 return interp_coords(self._render_copies.get(name, grid), x)

@@ -1,0 +1,67 @@
+"""numba kernels of :mod:`nerfmeta.fields.grid_kernels` (imported only when numba is installed).
+
+Grids are channels-first ``(C, X, Y, Z)`` and points are corner coordinates ``(3, N)``, as in
+:mod:`nerfmeta.fields.grid_ops`; a coordinate is clamped to ``[0, size - 1]`` (NaN to 0, so no
+index ever leaves the grid: numba does not check bounds) and its lower corner to ``size - 2``.
+One thread each; they release the GIL.
+"""
+
+from __future__ import annotations
+
+import numba
+
+
+@numba.njit(cache=True, nogil=True)
+def corner(v: float, top: int) -> tuple[int, float]:
+    """Lower corner index along one axis of ``top + 1`` corners, and the upper corner's weight."""
+    if not v > 0.0:  # NaN too
+        v = 0.0
+    if v > top:
+        v = float(top)
+    i = min(int(v), top - 1)
+    return i, v - i
+
+
+@numba.njit(cache=True, nogil=True)
+def cell(x, p: int, sx: int, sy: int, sz: int) -> tuple[int, int, int, float, float, float]:
+    """Lower corner (i, j, k) of point ``p`` of ``x`` (3, N) in a grid of sx x sy x sz corners, and the upper corners' weights."""
+    i, ax = corner(x[0, p], sx - 1)
+    j, ay = corner(x[1, p], sy - 1)
+    k, az = corner(x[2, p], sz - 1)
+    return i, j, k, ax, ay, az
+
+
+@numba.njit(cache=True, nogil=True)
+def gather(grid, x, out):  # pragma: no cover - compiled
+    """``out[c, p]`` = trilinear value of ``grid[c]`` (C, X, Y, Z) at ``x[:, p]`` (3, N); out (C, N)."""
+    n_channels, sx, sy, sz = grid.shape
+    for p in range(x.shape[1]):
+        i, j, k, ax, ay, az = cell(x, p, sx, sy, sz)
+        bx, by, bz = 1.0 - ax, 1.0 - ay, 1.0 - az
+        for c in range(n_channels):
+            g = grid[c]
+            v0 = (g[i, j, k] * bz + g[i, j, k + 1] * az) * by + (g[i, j + 1, k] * bz + g[i, j + 1, k + 1] * az) * ay
+            v1 = (g[i + 1, j, k] * bz + g[i + 1, j, k + 1] * az) * by + (g[i + 1, j + 1, k] * bz + g[i + 1, j + 1, k + 1] * az) * ay
+            out[c, p] = v0 * bx + v1 * ax
+
+
+@numba.njit(cache=True, nogil=True)
+def scatter(grad_out, x, grad):  # pragma: no cover - compiled
+    """Adds each ``grad_out[c, p]`` (C, N) to the 8 corners around ``x[:, p]`` in ``grad`` (C, X, Y, Z), trilinearly weighted."""
+    n_channels, sx, sy, sz = grad.shape
+    for p in range(x.shape[1]):
+        i, j, k, ax, ay, az = cell(x, p, sx, sy, sz)
+        bx, by, bz = 1.0 - ax, 1.0 - ay, 1.0 - az
+        for c in range(n_channels):
+            g = grad[c]
+            go = grad_out[c, p]
+            w0, w1 = go * bx, go * ax
+            w00, w01, w10, w11 = w0 * by, w0 * ay, w1 * by, w1 * ay
+            g[i, j, k] += w00 * bz
+            g[i, j, k + 1] += w00 * az
+            g[i, j + 1, k] += w01 * bz
+            g[i, j + 1, k + 1] += w01 * az
+            g[i + 1, j, k] += w10 * bz
+            g[i + 1, j, k + 1] += w10 * az
+            g[i + 1, j + 1, k] += w11 * bz
+            g[i + 1, j + 1, k + 1] += w11 * az

@@ -1,0 +1,177 @@
+"""The fused trilinear lookups (numba) against PyTorch's gather path and float64 references."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from autograd_graph import count_nodes
+
+from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
+from nerfmeta.fields.grid_ops import corners_from_coords, trilinear_gather
+from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
+
+needs_numba = pytest.mark.skipif(not fused_available(), reason="numba is not installed (the fused kernels are optional)")
+SIZE = (4, 5, 6)
+
+
+def _coords(n: int, generator: torch.Generator, dtype=torch.float64) -> torch.Tensor:
+    """(3, n) corner coordinates, a tenth of them outside the grid on some axis (clamped to the faces)."""
+    top = torch.tensor([s - 1 for s in SIZE], dtype=dtype)[:, None]
+    return (torch.rand(3, n, generator=generator, dtype=dtype) * 1.2 - 0.1) * top
+
+
+def _reference(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation written out per corner in float64 (independent of both paths)."""
+    top = torch.tensor([s - 1 for s in grid.shape[1:]], dtype=torch.float64)[:, None]
+    x = x.double().clamp(torch.zeros_like(top), top)
+    i0 = torch.minimum(x.floor(), top - 1).long()
+    f = x - i0
+    out = torch.zeros(grid.shape[0], x.shape[1], dtype=torch.float64)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1]) * (f[2] if dz else 1 - f[2])
+                out += w * grid.double()[:, i0[0] + dx, i0[1] + dy, i0[2] + dz]
+    return out
+
+
+@needs_numba
+@pytest.mark.parametrize("channels", [1, 3, 12])
+def test_fused_lookup_equals_the_float64_reference_and_the_gather_path(channels):
+    g = torch.Generator().manual_seed(channels)
+    grid = torch.randn(channels, *SIZE, generator=g, dtype=torch.float64)
+    x = _coords(500, g)
+    got = trilinear_coords(grid, x)
+    torch.testing.assert_close(got, _reference(grid, x), rtol=0, atol=1e-12)
+    with fused_lookups(False):
+        torch.testing.assert_close(trilinear_coords(grid, x), got, rtol=0, atol=1e-12)
+    # float32: the same values to float32's rounding
+    got32 = trilinear_coords(grid.float(), x.float())
+    assert got32.dtype == torch.float32
+    torch.testing.assert_close(got32.double(), _reference(grid, x.float()), rtol=0, atol=1e-5)
+
+
+@needs_numba
+def test_fused_lookup_hits_corners_exactly_and_clamps_outside_points_to_the_faces():
+    g = torch.Generator().manual_seed(5)
+    grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64)
+    corners = torch.stack(torch.meshgrid(*[torch.arange(s, dtype=torch.float64) for s in SIZE], indexing="ij")).reshape(3, -1)
+    torch.testing.assert_close(trilinear_coords(grid, corners), grid.reshape(2, -1), rtol=0, atol=0)
+    far = torch.tensor([[-5.0, 99.0], [-5.0, 99.0], [-5.0, 99.0]], dtype=torch.float64)
+    torch.testing.assert_close(trilinear_coords(grid, far), torch.stack([grid[:, 0, 0, 0], grid[:, -1, -1, -1]], 1))
+
+
+@needs_numba
+def test_fused_lookup_never_reads_outside_the_grid_for_nan_or_infinite_coordinates():
+    grid = torch.arange(2 * 2 * 2, dtype=torch.float32).reshape(1, 2, 2, 2).requires_grad_()
+    x = torch.tensor([[float("nan"), float("inf"), -float("inf")]] * 3)
+    out = trilinear_coords(grid, x)
+    torch.testing.assert_close(out.detach(), torch.tensor([[0.0, 7.0, 0.0]]))  # NaN and -inf: corner 0; +inf: the last
+    out.sum().backward()
+    want = torch.zeros(8)
+    want[0], want[7] = 2.0, 1.0
+    torch.testing.assert_close(grid.grad.reshape(-1), want)
+
+
+@needs_numba
+def test_fused_gradients_pass_gradcheck_and_gradgradcheck_in_float64():
+    g = torch.Generator().manual_seed(3)
+    grid = torch.randn(3, *SIZE, generator=g, dtype=torch.float64, requires_grad=True)
+    x = _coords(40, g)
+    torch.autograd.gradcheck(lambda v: trilinear_coords(v, x), (grid,))
+    torch.autograd.gradgradcheck(lambda v: trilinear_coords(v, x) ** 2, (grid,))  # MAML differentiates the backward
+
+
+@needs_numba
+def test_fused_backward_equals_the_gather_paths_scatter():
+    g = torch.Generator().manual_seed(4)
+    grid = torch.randn(3, *SIZE, generator=g, dtype=torch.float32, requires_grad=True)
+    x = _coords(3000, g, torch.float32)  # many points per corner: the scatter accumulates
+    upstream = torch.randn(3, 3000, generator=g)
+    (trilinear_coords(grid, x) * upstream).sum().backward()
+    fused = grid.grad.clone()
+    grid.grad = None
+    (trilinear_gather(grid.view(3, -1), *corners_from_coords(x, SIZE)) * upstream).sum().backward()
+    torch.testing.assert_close(fused, grid.grad, rtol=1e-5, atol=1e-4)
+
+
+def test_switched_off_or_not_float_the_lookup_falls_back_to_the_gather_path():
+    g = torch.Generator().manual_seed(6)
+    grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64, requires_grad=True)
+    x = _coords(30, g)
+    with fused_lookups(False):
+        out = trilinear_coords(grid, x)
+    assert "TrilinearGather" in type(out.grad_fn).__name__
+    torch.testing.assert_close(out, _reference(grid.detach(), x), rtol=0, atol=1e-12)
+    mixed = trilinear_coords(grid, x.float())  # dtypes differ: not the kernel's case
+    assert "TrilinearGather" in type(mixed.grad_fn).__name__
+
+
+@needs_numba
+def test_a_voxel_grid_trains_to_the_same_step_with_either_lookup():
+    """One forward and backward of a real VoxelGrid: the same loss and gradients from both paths."""
+    bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    config = VoxelGridConfig(num_voxels=12**3, coarse_num_voxels=8**3, coarse_iters=0, view_dependent=True)
+    g = torch.Generator().manual_seed(7)
+    n = 64
+    origins = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -3.0])
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    from nerfmeta.data.scene import RayBatch
+
+    rays = RayBatch(origins, directions, torch.full((n,), 1.0), torch.full((n,), 5.0), torch.rand(n, 3, generator=g))
+    results = []
+    for fused in (True, False):
+        torch.manual_seed(0)
+        model = VoxelGrid(config, bounds)
+        with torch.no_grad():
+            model.density.normal_(0, 1, generator=torch.Generator().manual_seed(8))
+        model.begin_step(1, None)
+        with fused_lookups(fused):
+            torch.manual_seed(1)
+            out = model(rays, background=torch.ones(3))
+            assert count_nodes(out.rgb, "TrilinearCoords" if fused else "TrilinearGather") == 2  # density and features
+            loss = ((out.rgb - rays.target) ** 2).mean()
+            loss.backward()
+        results.append((loss.detach(), {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}))
+    (loss_a, grads_a), (loss_b, grads_b) = results
+    torch.testing.assert_close(loss_a, loss_b)
+    assert grads_a.keys() == grads_b.keys() and {"density", "features"} <= grads_a.keys()
+    for k in grads_a:
+        torch.testing.assert_close(grads_a[k], grads_b[k], rtol=1e-4, atol=1e-6)
+
+
+def test_interp_points_equals_interp_gather_with_world_points_outside_the_box_clamped():
+    from nerfmeta.fields.grid_kernels import interp_points
+    from nerfmeta.fields.grid_ops import interp_gather
+
+    g = torch.Generator().manual_seed(9)
+    grid = torch.randn(4, *SIZE, generator=g, dtype=torch.float64)
+    bounds = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 0.5, 3.0]], dtype=torch.float64)
+    points = bounds[0] + torch.rand(200, 3, generator=g, dtype=torch.float64) * 1.4 * (bounds[1] - bounds[0]) \
+        - 0.2 * (bounds[1] - bounds[0])
+    got = interp_points(grid, points, bounds)
+    assert got.shape == (200, 4)
+    torch.testing.assert_close(got, interp_gather(grid, points, bounds), rtol=0, atol=1e-12)
+
+
+@needs_numba
+def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monkeypatch):
+    from nerfmeta.fields import _grid_numba, grid_kernels
+
+    def broken(*_):
+        raise RuntimeError("no LLVM target")
+
+    monkeypatch.setattr(_grid_numba, "gather", broken)
+    grid_kernels._kernels.cache_clear()
+    try:
+        with pytest.warns(UserWarning, match="numba could not compile the grid lookups .*no LLVM target"):
+            assert not fused_available()
+        g = torch.Generator().manual_seed(10)
+        grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64)
+        x = _coords(20, g)
+        torch.testing.assert_close(trilinear_coords(grid, x), _reference(grid, x), rtol=0, atol=1e-12)
+    finally:
+        monkeypatch.undo()
+        grid_kernels._kernels.cache_clear()
+    assert fused_available()
