@@ -338,6 +338,9 @@ def fit_scene(job: tuple) -> tuple[str, dict[str, Any]]:
     """Every arm on one scene, interleaved (the first arm rotating with the scene's index), one torch thread."""
     k, name, group, path, arms, iters, zoo, occupancy_net, start_coarse_iters, zoo_dir, overrides = job
     torch.set_num_threads(1)
+    from nerfmeta.fields.voxel_grid import VoxelGrid
+
+    VoxelGrid.warm_up()  # the worker's once-per-process cost (compiled lookups), on neither arm's clock
     order = arms[k % len(arms):] + arms[: k % len(arms)]
     curves = {arm: dataclasses.replace(grid_arm(arm, path, iters, occupancy_net=occupancy_net, start_coarse_iters=start_coarse_iters,
                                                 zoo_dir=zoo_dir, overrides=overrides), arm=arm)

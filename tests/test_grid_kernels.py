@@ -175,3 +175,21 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
         monkeypatch.undo()
         grid_kernels._kernels.cache_clear()
     assert fused_available()
+
+
+def test_a_fit_loads_the_kernels_before_its_clock_starts(tiny_scene, tmp_path, monkeypatch):
+    """The once-per-process load is not in the first step's time of whichever fit runs first."""
+    from nerfmeta.fields import voxel_grid
+    from nerfmeta.fit import run as run_module
+    from nerfmeta.fit.run import RunConfig, run_fit
+
+    events = []
+    monkeypatch.setattr(voxel_grid.VoxelGrid, "warm_up", classmethod(lambda cls: events.append("warm_up")))
+    real_build = run_module.build_initial_model
+    monkeypatch.setattr(run_module, "build_initial_model", lambda *a, **k: (events.append("build"), real_build(*a, **k))[1])
+    model = {"num_voxels": 6**3, "coarse_num_voxels": 4**3, "coarse_iters": 1, "growth_steps": []}
+    from nerfmeta.fit.loop import FitConfig
+
+    run_fit(RunConfig(scene=str(tiny_scene), backbone="grid", init="scratch", model=model,
+                      fit=FitConfig(iters=2, eval_every=0, checkpoint_every=0, final_ssim=False), renders=0), tmp_path / "run")
+    assert events[:2] == ["warm_up", "build"]

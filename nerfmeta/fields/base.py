@@ -232,6 +232,12 @@ class RadianceModel(Field):
         model must train past it so transfer fits start from the final structure."""
         return 0
 
+    @classmethod
+    def warm_up(cls) -> None:
+        """Load or compile, once per process, what this backbone's steps use (e.g. compiled kernels), so that
+        one-off cost lands before a fit's clock starts, as imports do, and not in the first step of whichever fit
+        runs first (default: nothing)."""
+
     def recipe_notes(self) -> dict[str, Any]:
         """Config values worth quoting in a pretrained model's recipe line (default: none)."""
         return {}

@@ -48,7 +48,7 @@ from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent, photometric_mse
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
 from nerfmeta.fields.encodings import GRID_ENCODINGS, EncodingChoice, build_encoding, encoding_config
-from nerfmeta.fields.grid_kernels import interp_points
+from nerfmeta.fields.grid_kernels import fused_available, interp_points
 from nerfmeta.render.estimators import OccupancyGrid, dilate, grid_points, split_sections, values_near
 from nerfmeta.render.volume import render_packed
 
@@ -301,6 +301,11 @@ class SdfField(RadianceModel):
 
     backbone = "sdf"
     meta_hints = SDF_META_HINTS
+
+    @classmethod
+    def warm_up(cls) -> None:
+        """Load the fused CPU lookups of the colour grid (``color_grid``; :mod:`~nerfmeta.fields.grid_kernels`)."""
+        fused_available()
 
     def __init__(self, config: SdfConfig, bounds: torch.Tensor):
         super().__init__()

@@ -477,6 +477,12 @@ class VoxelGrid(RadianceModel):
         return InnerBox((x, y, z), radius, config.shell)
 
     # ----- structure -------------------------------------------------------------------------
+    @classmethod
+    def warm_up(cls) -> None:
+        """Load the fused CPU lookups (:mod:`~nerfmeta.fields.grid_kernels`: about half a second the first time in a
+        process with numba's cache warm)."""
+        fused_available()
+
     def _init_coarse(self, bounds: torch.Tensor, size: tuple[int, int, int]) -> None:
         cfg = self.config
         self.stage = "coarse"
