@@ -181,8 +181,13 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     from nerfmeta.fields.registry import build_model
     from nerfmeta.fields.voxel_grid import VoxelGridConfig
     from nerfmeta.fit.loop import FitConfig
+    from nerfmeta.fit.run import RunConfig
+    from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config, load_occupancy_net
     from nerfmeta.priors.start import CARVE_COARSE_ITERS, carve_grid_start
+    from nerfmeta.route import route_scene
+    from nerfmeta.zoo import load_zoo
 
+    # Imported above, off the clock: a process's imports are no arm's work (nerfmeta fit imports them at start-up).
     scene = load_scene(scene_path)
     background = torch.tensor(scene.background, dtype=torch.float32)
     fit_config = FitConfig(iters=iters, eval_every=0, checkpoint_every=0, final_ssim=False)
@@ -195,10 +200,6 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     config = VoxelGridConfig().for_scene(scene)
     note = ""
     if arm == "routed":
-        from nerfmeta.fit.run import RunConfig
-        from nerfmeta.route import route_scene
-        from nerfmeta.zoo import load_zoo
-
         route = route_scene(RunConfig(scene=str(scene_path), backbone="grid"), load_zoo(zoo_dir), 0)
         if route.route not in ("scratch", "occupancy", "carve"):
             raise ValueError(f"{scene_path}: routed to {route.init}, which this bench does not fit")
@@ -208,8 +209,6 @@ def grid_arm(arm: str, scene_path: Path, iters: int, extra_times: tuple[float, .
     if arm not in ("carve", "occupancy"):
         model = build_model("grid", settled(config), scene.bounds, seed=0)
     else:  # as --init carve / --init occupancy do: in the silhouettes' box
-        from nerfmeta.priors.occupancy import boxed_start, hull_inputs, learned_start, learned_start_config, load_occupancy_net
-
         if start_coarse_iters is not None:  # 0 too: no coarse stage at all
             config = dataclasses.replace(config, coarse_iters=start_coarse_iters)
         else:  # as the fit does: the carve keeps scratch's coarse stage, a learned start its own
