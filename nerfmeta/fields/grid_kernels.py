@@ -12,8 +12,9 @@ lookups*).
 
 The kernels run on one thread each (no numba threading layer is started, so there is no second
 OpenMP runtime beside PyTorch's, and concurrent callers are safe: they release the GIL). They are
-compiled on first use and cached on disk (numba's ``cache=True``), so only the first fit on a
-machine waits for the compilation (about a second a kernel and dtype).
+compiled on first use and cached on disk (numba's ``cache=True``): about 1.4 s once per machine, then
+about 0.6 s a process to import numba and load them, which the backbones' ``warm_up`` spends before a
+fit's clock starts (measured on the 2-core CPU).
 
 numba is optional: without it (or for tensors on a GPU, or with ``NERFMETA_FUSED_LOOKUPS=0``)
 :func:`trilinear_coords` uses the PyTorch path, whose values it matches (tests compare both with
