@@ -193,3 +193,30 @@ def test_a_fit_loads_the_kernels_before_its_clock_starts(tiny_scene, tmp_path, m
     run_fit(RunConfig(scene=str(tiny_scene), backbone="grid", init="scratch", model=model,
                       fit=FitConfig(iters=2, eval_every=0, checkpoint_every=0, final_ssim=False), renders=0), tmp_path / "run")
     assert events[:2] == ["warm_up", "build"]
+
+
+@needs_numba
+@pytest.mark.parametrize("view_dependent", [False, True])  # 3 feature channels (fused at test time) or 9 (grid_sample)
+def test_test_time_renders_give_the_same_image_with_or_without_the_fused_kernels(view_dependent):
+    from nerfmeta.data.scene import RayBatch
+
+    bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    config = VoxelGridConfig(num_voxels=12**3, coarse_num_voxels=8**3, coarse_iters=0, view_dependent=view_dependent)
+    g = torch.Generator().manual_seed(11)
+    n = 128
+    origins = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -3.0])
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    rays = RayBatch(origins, directions, torch.full((n,), 1.0), torch.full((n,), 5.0))
+    torch.manual_seed(0)
+    model = VoxelGrid(config, bounds)
+    with torch.no_grad():
+        model.density.normal_(0, 1, generator=torch.Generator().manual_seed(12))
+        model.features.normal_(0, 1, generator=torch.Generator().manual_seed(13))
+    model.begin_step(1, None)
+    model.eval()
+    images = []
+    for fused in (True, False):
+        with fused_lookups(fused), torch.no_grad():
+            images.append(model(rays, background=torch.ones(3)).rgb)
+    assert images[0].std() > 0.02  # a real image, not a blank
+    torch.testing.assert_close(images[0], images[1], rtol=0, atol=1e-3)  # grid_sample rounds its coordinates

@@ -42,8 +42,9 @@ compositing weight exceeds ``fast_color_thres`` (``coarse_fast_color_thres`` in 
 lookups on a CPU use the fused kernels of :mod:`~nerfmeta.fields.grid_kernels` (numba: a sample's corners,
 weights and values in one compiled loop, its gradient scattered in another; the embedding is then the corner
 coordinates), elsewhere, or without numba, :func:`~nerfmeta.fields.grid_ops.trilinear_gather`: corner indices and weights
-computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders (no
-gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
+computed once per sample, a gather forward and an ``index_add_`` backward. Test-time renders on a CPU look up the
+density grid and colour grids of up to :data:`FUSED_RENDER_MAX_CHANNELS` channels with the same fused kernels;
+other test-time lookups (no gradient) use one fused ``grid_sample`` per grid instead (:func:`~nerfmeta.fields.grid_ops.interp_coords`,
 on channels-last copies of the colour grids, made once per whole-view render, :meth:`VoxelGrid.render_session`,
 not per chunk): the same values, 1.8x the rays per second on a contracted beer frame
 and 1.1-1.2x on lego (BENCHMARKS.md, *Faster test renders*).
@@ -91,6 +92,11 @@ from nerfmeta.data.scene_type import focus_point, view_directions
 from nerfmeta.render.contraction import InnerBox, inner_box_from_cameras, to_march
 from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, contracted_interval, evaluate_in_chunks
 from nerfmeta.render.volume import Composite, packed_distortion, softplus_shift_for_alpha
+
+FUSED_RENDER_MAX_CHANNELS = 3
+"""Test-time renders on a CPU look up colour grids of at most this many channels with the fused kernels
+(:mod:`~nerfmeta.fields.grid_kernels`; the density grid always): faster than ``grid_sample`` on a channels-last
+copy for 1 and 3 channels, slower for the MLP's 9 (BENCHMARKS.md, *Fused grid lookups*)."""
 
 AUTO_VOXELS_PER_PIXEL = 0.88
 """Auto fine grid: voxels per axis per pixel of the larger image side (88^3 for 100x100 views)."""
@@ -843,20 +849,21 @@ class VoxelGrid(RadianceModel):
 
         The embedding is the trilinear corners (indices, weights), (8, N) each, shared by the colour
         lookups; with the fused CPU kernels (:func:`~nerfmeta.fields.grid_kernels.trilinear_coords`), which
-        recompute them in registers, the corner coordinates (3, N). Without gradient (test-time renders) it is
-        the corner coordinates (3, N) alone, and
-        every lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy of
+        recompute them in registers, the corner coordinates (3, N), training or not. Without gradient and
+        without those kernels (test-time renders on a GPU) it is the corner coordinates (3, N) too, and every
+        lookup is one fused :func:`~nerfmeta.fields.grid_ops.interp_coords` (on a channels-last copy of
         a colour grid, kept for a whole view inside :meth:`render_session`, else made when the samples outnumber
-        an eighth of its voxels): the same values, faster.
+        an eighth of its voxels): the same values, faster. On a CPU, test-time colour grids of more than
+        :data:`FUSED_RENDER_MAX_CHANNELS` channels take that path too.
         """
         if self.box is not None:
             points = self.box.contract(points)
         x = grid_coords(points, self.bounds, self.size).contiguous()
+        if fused_available() and x.device.type == "cpu":  # on a CPU the fused kernels take the coordinates
+            raw = trilinear_coords(self._density_grid(), x)[0]
+            return F.softplus(raw + self.shift) / self.unit, (x,)
         if not torch.is_grad_enabled():
             raw = interp_coords(self._density_grid(), x)[0]
-            return F.softplus(raw + self.shift) / self.unit, (x,)
-        if fused_available() and x.device.type == "cpu":  # training on a CPU: the fused kernels take coordinates
-            raw = trilinear_coords(self._density_grid(), x)[0]
             return F.softplus(raw + self.shift) / self.unit, (x,)
         idx, w = corners_from_coords(x, self.size)
         raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
@@ -871,7 +878,8 @@ class VoxelGrid(RadianceModel):
         grid = getattr(self, name)
         if len(embedding) == 1:  # corner coordinates: test time, or training with the fused kernels
             x = embedding[0] if sel is None else take_columns(embedding[0], sel)
-            if torch.is_grad_enabled():
+            if torch.is_grad_enabled() or (grid.shape[0] <= FUSED_RENDER_MAX_CHANNELS and fused_available()
+                                           and x.device.type == "cpu"):
                 return trilinear_coords(grid, x)
             # the copy costs less than it saves when kept for a whole view, or for this many samples
             if self._render_copies.keeping or 8 * x.shape[1] >= grid[0].numel():
