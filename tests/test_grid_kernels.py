@@ -7,6 +7,7 @@ import torch
 
 from autograd_graph import count_nodes
 
+from nerfmeta.data.scene import RayBatch
 from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
 from nerfmeta.fields.grid_ops import corners_from_coords, trilinear_gather
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
@@ -108,22 +109,26 @@ def test_switched_off_or_not_float_the_lookup_falls_back_to_the_gather_path():
     assert "TrilinearGather" in type(mixed.grad_fn).__name__
 
 
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _rays_into_the_box(n: int, seed: int) -> RayBatch:
+    """``n`` rays from near (0, 0, -3) towards +z through :data:`BOX`, with random targets."""
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -3.0])
+    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    return RayBatch(origins, directions, torch.full((n,), 1.0), torch.full((n,), 5.0), torch.rand(n, 3, generator=g))
+
+
 @needs_numba
 def test_a_voxel_grid_trains_to_the_same_step_with_either_lookup():
     """One forward and backward of a real VoxelGrid: the same loss and gradients from both paths."""
-    bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     config = VoxelGridConfig(num_voxels=12**3, coarse_num_voxels=8**3, coarse_iters=0, view_dependent=True)
-    g = torch.Generator().manual_seed(7)
-    n = 64
-    origins = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -3.0])
-    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
-    from nerfmeta.data.scene import RayBatch
-
-    rays = RayBatch(origins, directions, torch.full((n,), 1.0), torch.full((n,), 5.0), torch.rand(n, 3, generator=g))
+    rays = _rays_into_the_box(64, 7)
     results = []
     for fused in (True, False):
         torch.manual_seed(0)
-        model = VoxelGrid(config, bounds)
+        model = VoxelGrid(config, BOX)
         with torch.no_grad():
             model.density.normal_(0, 1, generator=torch.Generator().manual_seed(8))
         model.begin_step(1, None)
@@ -198,17 +203,10 @@ def test_a_fit_loads_the_kernels_before_its_clock_starts(tiny_scene, tmp_path, m
 @needs_numba
 @pytest.mark.parametrize("view_dependent", [False, True])  # 3 feature channels (fused at test time) or 9 (grid_sample)
 def test_test_time_renders_give_the_same_image_with_or_without_the_fused_kernels(view_dependent):
-    from nerfmeta.data.scene import RayBatch
-
-    bounds = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     config = VoxelGridConfig(num_voxels=12**3, coarse_num_voxels=8**3, coarse_iters=0, view_dependent=view_dependent)
-    g = torch.Generator().manual_seed(11)
-    n = 128
-    origins = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -3.0])
-    directions = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
-    rays = RayBatch(origins, directions, torch.full((n,), 1.0), torch.full((n,), 5.0))
+    rays = _rays_into_the_box(128, 11)
     torch.manual_seed(0)
-    model = VoxelGrid(config, bounds)
+    model = VoxelGrid(config, BOX)
     with torch.no_grad():
         model.density.normal_(0, 1, generator=torch.Generator().manual_seed(12))
         model.features.normal_(0, 1, generator=torch.Generator().manual_seed(13))
