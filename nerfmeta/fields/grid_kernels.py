@@ -35,7 +35,7 @@ import torch
 
 from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear_gather
 
-__all__ = ["fused_available", "fused_lookups", "interp_points", "trilinear_coords"]
+__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "trilinear_coords"]
 
 _NUMPY_DTYPE = {torch.float32: numpy.float32, torch.float64: numpy.float64}
 _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
@@ -66,6 +66,13 @@ def _kernels() -> Any:
 def fused_available() -> bool:
     """True when the fused CPU kernels can be used (numba importable and not switched off)."""
     return _ENABLED[0] and _kernels() is not None
+
+
+def fused_for(grid: torch.Tensor, x: torch.Tensor) -> bool:
+    """True when :func:`trilinear_coords` looks ``grid`` up at ``x`` with the fused kernels: they are available, and
+    both tensors are on the CPU in the same float32 or float64 dtype."""
+    return (fused_available() and grid.device.type == "cpu" and x.device.type == "cpu" and grid.dtype == x.dtype
+            and grid.dtype in _NUMPY_DTYPE)
 
 
 @contextmanager
@@ -135,12 +142,11 @@ def trilinear_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
     Returns:
         (C, N): the values of :func:`~nerfmeta.fields.grid_ops.trilinear_gather` with
-        :func:`~nerfmeta.fields.grid_ops.corners_from_coords`, from the fused kernels when
-        :func:`fused_available` and both tensors are on the CPU in the same floating dtype, else from those.
+        :func:`~nerfmeta.fields.grid_ops.corners_from_coords`, from the fused kernels when :func:`fused_for`
+        says so, else from those.
     """
     x = x.detach()
-    if fused_available() and grid.device.type == "cpu" and x.device.type == "cpu" and grid.dtype == x.dtype \
-            and grid.dtype in (torch.float32, torch.float64):
+    if fused_for(grid, x):
         return _TrilinearCoords.apply(grid, x.contiguous())
     size = tuple(grid.shape[1:])
     return trilinear_gather(grid.reshape(grid.shape[0], -1), *corners_from_coords(x, size))  # type: ignore[arg-type]

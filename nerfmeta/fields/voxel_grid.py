@@ -73,7 +73,7 @@ from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Decision, Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
 from nerfmeta.fields.encoding import encoding_dim, positional_encoding
-from nerfmeta.fields.grid_kernels import fused_available, trilinear_coords
+from nerfmeta.fields.grid_kernels import fused_available, fused_for, trilinear_coords
 from nerfmeta.fields.grid_ops import (
     ChannelsLastCopies,
     corners_from_coords,
@@ -859,14 +859,15 @@ class VoxelGrid(RadianceModel):
         if self.box is not None:
             points = self.box.contract(points)
         x = grid_coords(points, self.bounds, self.size).contiguous()
-        if fused_available() and x.device.type == "cpu":  # on a CPU the fused kernels take the coordinates
-            raw = trilinear_coords(self._density_grid(), x)[0]
+        density = self._density_grid()
+        if fused_for(density, x):  # on a CPU the fused kernels take the coordinates
+            raw = trilinear_coords(density, x)[0]
             return F.softplus(raw + self.shift) / self.unit, (x,)
         if not torch.is_grad_enabled():
-            raw = interp_coords(self._density_grid(), x)[0]
+            raw = interp_coords(density, x)[0]
             return F.softplus(raw + self.shift) / self.unit, (x,)
         idx, w = corners_from_coords(x, self.size)
-        raw = trilinear_gather(self._density_grid().view(1, -1), idx, w)[0]
+        raw = trilinear_gather(density.view(1, -1), idx, w)[0]
         return F.softplus(raw + self.shift) / self.unit, (idx, w)
 
     def render_session(self) -> ContextManager[None]:
@@ -878,13 +879,14 @@ class VoxelGrid(RadianceModel):
         grid = getattr(self, name)
         if len(embedding) == 1:  # corner coordinates: test time, or training with the fused kernels
             x = embedding[0] if sel is None else take_columns(embedding[0], sel)
-            if torch.is_grad_enabled() or (grid.shape[0] <= FUSED_RENDER_MAX_CHANNELS and fused_available()
-                                           and x.device.type == "cpu"):
-                return trilinear_coords(grid, x)
-            # the copy costs less than it saves when kept for a whole view, or for this many samples
-            if self._render_copies.keeping or 8 * x.shape[1] >= grid[0].numel():
+            wide = grid.shape[0] > FUSED_RENDER_MAX_CHANNELS
+            # Without gradient, grid_sample on a channels-last copy wins where the fused kernels do not apply or the
+            # grid is wider than FUSED_RENDER_MAX_CHANNELS, when the copy costs less than it saves: kept for a whole
+            # view, or for this many samples.
+            if not torch.is_grad_enabled() and (wide or not fused_for(grid, x)) \
+                    and (self._render_copies.keeping or 8 * x.shape[1] >= grid[0].numel()):
                 return interp_coords(self._render_copies.get(name, grid), x)
-            return trilinear_gather(grid.view(grid.shape[0], -1), *corners_from_coords(x, self.size))
+            return trilinear_coords(grid, x)
         idx, w = embedding
         if sel is not None:
             idx, w = take_columns(idx, sel), take_columns(w, sel)
