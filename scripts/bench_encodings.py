@@ -34,10 +34,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
+import torch  # noqa: E402
 
 from nerfmeta.collection.generate import load_collection  # noqa: E402
 from nerfmeta.geometry.metrics import GeometryConfig  # noqa: E402

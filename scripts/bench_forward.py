@@ -32,6 +32,7 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
 import torch
 
 from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene

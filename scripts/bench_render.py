@@ -28,10 +28,11 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
+import torch  # noqa: E402
 
 from nerfmeta.errors import ConfigError  # noqa: E402
 from nerfmeta.fit.evaluate import evaluate_views  # noqa: E402

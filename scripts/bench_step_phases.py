@@ -28,9 +28,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
+import torch  # noqa: E402
 
 from nerfmeta.commands.fit import parse_overrides  # noqa: E402
 from nerfmeta.errors import NerfmetaError  # noqa: E402

@@ -55,6 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the pretrain/ package, when the checkout is not installed
     sys.path.insert(0, str(ROOT))
 
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
 import torch  # noqa: E402
 
 from benchlib.sections import write_section as write_benchmark_section  # noqa: E402

@@ -26,10 +26,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
+import torch  # noqa: E402
 
 from nerfmeta.config import build_config, parse_overrides  # noqa: E402
 from nerfmeta.fields.grid_ops import interp_cf  # noqa: E402

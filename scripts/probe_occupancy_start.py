@@ -35,10 +35,11 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
+import torch  # noqa: E402
 
 from nerfmeta.data import load_scene  # noqa: E402
 from nerfmeta.fields.grid_ops import dilate  # noqa: E402

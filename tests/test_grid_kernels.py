@@ -97,6 +97,72 @@ def test_fused_backward_equals_the_gather_paths_scatter():
     torch.testing.assert_close(fused, grid.grad, rtol=1e-5, atol=1e-4)
 
 
+@needs_numba
+@pytest.mark.parametrize("threads", [2, 3])
+def test_lookups_split_over_threads_give_the_one_thread_values_and_gradients_bit_for_bit(threads, monkeypatch):
+    from nerfmeta.fields import grid_kernels
+
+    g = torch.Generator().manual_seed(threads)
+    grid = torch.randn(3, *SIZE, generator=g, dtype=torch.float32, requires_grad=True)
+    x = _coords(5000, g, torch.float32)  # ~40 points a cell: every corner plane is written by many points
+    upstream = torch.randn(3, 5000, generator=g)
+
+    monkeypatch.setenv("GOMP_SPINCOUNT", "10000")
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+
+    def lookup_and_grad(parts: int):
+        monkeypatch.setattr(grid_kernels, "SPLIT_MIN_POINTS", 1000)
+        monkeypatch.setattr(torch, "get_num_threads", lambda: parts)
+        grid.grad = None
+        out = trilinear_coords(grid, x)
+        (out * upstream).sum().backward()
+        return out.detach(), grid.grad.clone()
+
+    calls = []
+    real_split = grid_kernels._split
+    monkeypatch.setattr(grid_kernels, "_split", lambda kernel, args: (calls.append(len(args)), real_split(kernel, args)))
+    one, split = lookup_and_grad(1), lookup_and_grad(threads)
+    assert calls == [1, 1, threads, threads]  # the lookup and its scatter, each split
+    assert torch.equal(one[0], split[0]) and torch.equal(one[1], split[1])
+    torch.testing.assert_close(one[0].double(), _reference(grid.detach(), x), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize(("spincount", "policy", "split"), [
+    (None, None, False), ("300000", None, False), ("infinite", None, False), ("10000", None, True),
+    ("0", None, True), (None, "PASSIVE", True), ("300000", "passive", True), (None, "active", False),
+])
+def test_lookups_split_only_while_openmp_workers_wait_briefly(spincount, policy, split, monkeypatch):
+    from nerfmeta.fields import grid_kernels
+
+    for name, value in (("GOMP_SPINCOUNT", spincount), ("OMP_WAIT_POLICY", policy)):
+        if value is None:
+            monkeypatch.delenv(name, raising=False)
+        else:
+            monkeypatch.setenv(name, value)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    assert grid_kernels.short_openmp_wait() is split
+    assert grid_kernels._parts(10**6) == (2 if split else 1)
+    assert grid_kernels._parts(grid_kernels.SPLIT_MIN_POINTS - 1) == 1
+
+
+@pytest.mark.parametrize(("code", "before", "after"), [
+    ("import nerfmeta", None, "10000"),  # as the CLI starts: nerfmeta before torch
+    ("import nerfmeta", "250", "250"),  # the user's own value is kept
+    ("import torch, nerfmeta", None, None),  # torch first: too late for libgomp, so left alone
+])
+def test_importing_nerfmeta_before_torch_shortens_the_openmp_spin(code, before, after):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    if before is not None:
+        env["GOMP_SPINCOUNT"] = before
+    done = subprocess.run([sys.executable, "-c", code + "; import os; print(os.environ.get('GOMP_SPINCOUNT'))"],
+                          capture_output=True, text=True, env=env, timeout=120, check=True)
+    assert done.stdout.strip() == str(after)
+
+
 def test_switched_off_or_not_float_the_lookup_falls_back_to_the_gather_path():
     g = torch.Generator().manual_seed(6)
     grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64, requires_grad=True)

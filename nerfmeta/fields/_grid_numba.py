@@ -3,7 +3,8 @@
 Grids are channels-first ``(C, X, Y, Z)`` and points are corner coordinates ``(3, N)``, as in
 :mod:`nerfmeta.fields.grid_ops`; a coordinate is clamped to ``[0, size - 1]`` (NaN to 0, so no
 index ever leaves the grid: numba does not check bounds) and its lower corner to ``size - 2``.
-One thread each; they release the GIL.
+Each call runs on one thread and releases the GIL; a lookup splits its points, and a scatter its
+corner planes, over concurrent calls (:mod:`~nerfmeta.fields.grid_kernels`).
 """
 
 from __future__ import annotations
@@ -32,10 +33,10 @@ def cell(x, p: int, sx: int, sy: int, sz: int) -> tuple[int, int, int, float, fl
 
 
 @numba.njit(cache=True, nogil=True)
-def gather(grid, x, out):  # pragma: no cover - compiled
-    """``out[c, p]`` = trilinear value of ``grid[c]`` (C, X, Y, Z) at ``x[:, p]`` (3, N); out (C, N)."""
+def gather(grid, x, out, lo: int, hi: int):  # pragma: no cover - compiled
+    """``out[c, p]`` = trilinear value of ``grid[c]`` (C, X, Y, Z) at ``x[:, p]`` (3, N) for ``lo <= p < hi``; out (C, N)."""
     n_channels, sx, sy, sz = grid.shape
-    for p in range(x.shape[1]):
+    for p in range(lo, hi):
         i, j, k, ax, ay, az = cell(x, p, sx, sy, sz)
         bx, by, bz = 1.0 - ax, 1.0 - ay, 1.0 - az
         for c in range(n_channels):
@@ -46,22 +47,32 @@ def gather(grid, x, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def scatter(grad_out, x, grad):  # pragma: no cover - compiled
-    """Adds each ``grad_out[c, p]`` (C, N) to the 8 corners around ``x[:, p]`` in ``grad`` (C, X, Y, Z), trilinearly weighted."""
+def add_plane(g, i: int, j: int, k: int, w: float, ay: float, az: float) -> None:
+    """Adds ``w`` to the 4 corners of plane ``i`` around ``(j, k)`` of ``g`` (X, Y, Z), bilinearly weighted."""
+    w0, w1 = w * (1.0 - ay), w * ay
+    g[i, j, k] += w0 * (1.0 - az)
+    g[i, j, k + 1] += w0 * az
+    g[i, j + 1, k] += w1 * (1.0 - az)
+    g[i, j + 1, k + 1] += w1 * az
+
+
+@numba.njit(cache=True, nogil=True)
+def scatter(grad_out, x, grad, part: int, parts: int):  # pragma: no cover - compiled
+    """Adds each ``grad_out[c, p]`` (C, N) to the 8 corners around ``x[:, p]`` in ``grad`` (C, X, Y, Z), trilinearly
+    weighted, writing only the corner planes ``i`` with ``i % parts == part``.
+
+    ``parts`` calls with ``part = 0 .. parts - 1`` may run at once: no two write the same value, and each adds to a
+    value in the order of the points, so the sums are those of one call with ``parts = 1``, bit for bit.
+    """
     n_channels, sx, sy, sz = grad.shape
     for p in range(x.shape[1]):
         i, j, k, ax, ay, az = cell(x, p, sx, sy, sz)
-        bx, by, bz = 1.0 - ax, 1.0 - ay, 1.0 - az
+        lower, upper = i % parts == part, (i + 1) % parts == part
+        if not (lower or upper):
+            continue
         for c in range(n_channels):
-            g = grad[c]
             go = grad_out[c, p]
-            w0, w1 = go * bx, go * ax
-            w00, w01, w10, w11 = w0 * by, w0 * ay, w1 * by, w1 * ay
-            g[i, j, k] += w00 * bz
-            g[i, j, k + 1] += w00 * az
-            g[i, j + 1, k] += w01 * bz
-            g[i, j + 1, k + 1] += w01 * az
-            g[i + 1, j, k] += w10 * bz
-            g[i + 1, j, k + 1] += w10 * az
-            g[i + 1, j + 1, k] += w11 * bz
-            g[i + 1, j + 1, k + 1] += w11 * az
+            if lower:
+                add_plane(grad[c], i, j, k, go * (1.0 - ax), ay, az)
+            if upper:
+                add_plane(grad[c], i + 1, j, k, go * ax, ay, az)

@@ -10,9 +10,17 @@ nothing of size 8N is ever written. On the 2-core CPU a grid fit of a generated 
 its 1000 steps in 0.79-0.85 of the time, and a 60-s lego fit 15 % more steps (BENCHMARKS.md, *Fused grid
 lookups*).
 
-The kernels run on one thread each (no numba threading layer is started, so there is no second
-OpenMP runtime beside PyTorch's, and concurrent callers are safe: they release the GIL). They are
-compiled on first use and cached on disk (numba's ``cache=True``): about 1.4 s once per machine, then
+A lookup is split over as many threads as torch may use (``torch.get_num_threads()``): its points in
+contiguous ranges, and its gradient scatter by the corner planes each thread owns (plane ``i`` to thread
+``i % threads``), so no two threads write the same value and every value is summed in the points' order,
+bit for bit the one-thread result. The threads are Python threads running compiled loops that release
+the GIL; no numba threading layer is started, so there is no second OpenMP runtime beside PyTorch's. They
+split only while PyTorch's own OpenMP workers spin briefly after their work (:func:`short_openmp_wait`;
+importing :mod:`nerfmeta` before torch sets that up), else a spinning worker holds the core the second
+thread needs. On the 2-core CPU the split gives a beer fit 1.3x the steps in 120 s and a lego fit 1.1x in
+60 s (BENCHMARKS.md, *Fused grid lookups*).
+
+The kernels are compiled on first use and cached on disk (numba's ``cache=True``): about 1.4 s once per machine, then
 about 0.6 s a process to import numba and load them, which the backbones' ``warm_up`` spends before a
 fit's clock starts (measured on the 2-core CPU).
 
@@ -26,7 +34,8 @@ from __future__ import annotations
 import functools
 import os
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
@@ -35,10 +44,15 @@ import torch
 
 from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear_gather
 
-__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "trilinear_coords"]
+__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "short_openmp_wait", "trilinear_coords"]
 
 _NUMPY_DTYPE = {torch.float32: numpy.float32, torch.float64: numpy.float64}
 _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
+
+SPLIT_MIN_POINTS = 16384
+"""Lookups of at least this many points are split over torch's threads (below, a thread hand-off costs more than it saves)."""
+SHORT_SPINCOUNT = 100_000
+"""The largest ``GOMP_SPINCOUNT`` :func:`short_openmp_wait` counts as short (libgomp's default is 300,000)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -55,8 +69,8 @@ def _kernels() -> Any:
     try:
         grid, x = numpy.zeros((1, 2, 2, 2), numpy.float32), numpy.full((3, 1), 0.5, numpy.float32)
         out = numpy.empty((1, 1), numpy.float32)
-        _grid_numba.gather(grid, x, out)
-        _grid_numba.scatter(out, x, grid)
+        _grid_numba.gather(grid, x, out, 0, 1)
+        _grid_numba.scatter(out, x, grid, 0, 1)
     except Exception as exc:  # noqa: BLE001 - any compiler failure: fall back, say why
         warnings.warn(f"numba could not compile the grid lookups ({type(exc).__name__}: {exc}); using PyTorch's", stacklevel=2)
         return None
@@ -86,17 +100,58 @@ def fused_lookups(enabled: bool) -> Iterator[None]:
         _ENABLED[0] = before
 
 
+def short_openmp_wait() -> bool:
+    """True when PyTorch's OpenMP workers were told to spin briefly (``GOMP_SPINCOUNT`` at most
+    :data:`SHORT_SPINCOUNT`, or ``OMP_WAIT_POLICY=passive``), as importing :mod:`nerfmeta` before torch does.
+
+    Otherwise a worker spins through most of a step on the core a lookup's second thread needs: split lookups then
+    measured no faster, and once 5x slower (BENCHMARKS.md, *Fused grid lookups*), so they stay on one thread.
+    """
+    if os.environ.get("OMP_WAIT_POLICY", "").strip().lower() == "passive":
+        return True
+    try:
+        return int(os.environ.get("GOMP_SPINCOUNT", "").strip()) <= SHORT_SPINCOUNT
+    except ValueError:  # unset, or libgomp's own forms ("10k", "infinite"): not known to be short
+        return False
+
+
+def _parts(n_points: int) -> int:
+    """How many concurrent calls a kernel over ``n_points`` is split into: torch's thread count (so ``--threads``
+    and the test renders' one-thread workers hold), 1 below :data:`SPLIT_MIN_POINTS` or without a short OpenMP wait
+    (:func:`short_openmp_wait`)."""
+    if n_points < SPLIT_MIN_POINTS or not short_openmp_wait():
+        return 1
+    return max(1, torch.get_num_threads())
+
+
+@functools.lru_cache(maxsize=None)
+def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
+    """One pool per size and process (a forked child cannot use its parent's threads: they are not there)."""
+    return ThreadPoolExecutor(workers, thread_name_prefix="nerfmeta-lookups")
+
+
+def _split(kernel: Callable[..., None], calls: list[tuple[Any, ...]]) -> None:
+    """Runs ``kernel(*args)`` for each of ``calls``, the last on this thread and the others at once beside it."""
+    futures = [_pool(len(calls) - 1, os.getpid()).submit(kernel, *args) for args in calls[:-1]]
+    kernel(*calls[-1])
+    for future in futures:
+        future.result()
+
+
 def _gather(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     grid = grid.detach().contiguous()
     out = grid.new_empty(grid.shape[0], x.shape[1])
-    _kernels().gather(grid.numpy(), x.numpy(), out.numpy())
+    g, xs, o, n = grid.numpy(), x.numpy(), out.numpy(), x.shape[1]
+    parts = _parts(n)
+    _split(_kernels().gather, [(g, xs, o, n * q // parts, n * (q + 1) // parts) for q in range(parts)])
     return out
 
 
 def _scatter(values: torch.Tensor, x: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
     # numpy's zeros come from calloc: pages no point touches are never written (torch.zeros writes them all)
     grad = numpy.zeros(shape, dtype=_NUMPY_DTYPE[values.dtype])
-    _kernels().scatter(values.detach().contiguous().numpy(), x.numpy(), grad)
+    v, xs, parts = values.detach().contiguous().numpy(), x.numpy(), _parts(x.shape[1])
+    _split(_kernels().scatter, [(v, xs, grad, q, parts) for q in range(parts)])
     return torch.from_numpy(grad)
 
 
