@@ -14,11 +14,11 @@ A lookup is split over as many threads as torch may use (``torch.get_num_threads
 contiguous ranges, and its gradient scatter by the corner planes each thread owns (plane ``i`` to thread
 ``i % threads``), so no two threads write the same value and every value is summed in the points' order,
 bit for bit the one-thread result. The threads are Python threads running compiled loops that release
-the GIL; no numba threading layer is started, so there is no second OpenMP runtime beside PyTorch's. They
-split only while PyTorch's own OpenMP workers spin briefly after their work (:func:`short_openmp_wait`;
+the GIL; no numba threading layer is started, so there is no second OpenMP runtime beside PyTorch's.
+Lookups split only while PyTorch's own OpenMP workers spin briefly after their work (:func:`short_openmp_wait`;
 importing :mod:`nerfmeta` before torch sets that up), else a spinning worker holds the core the second
-thread needs. On the 2-core CPU the split gives a beer fit 1.3x the steps in 120 s and a lego fit 1.1x in
-60 s (BENCHMARKS.md, *Fused grid lookups*).
+thread needs. On the 2-core CPU the split gives a beer fit 1.26x the steps in 120 s and a lego fit 1.12x in
+60 s (medians; BENCHMARKS.md, *Fused grid lookups*).
 
 The kernels are compiled on first use and cached on disk (numba's ``cache=True``): about 1.4 s once per machine, then
 about 0.6 s a process to import numba and load them, which the backbones' ``warm_up`` spends before a
