@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 import torch
 
 from autograd_graph import count_nodes
 
 from nerfmeta.data.scene import RayBatch
+from nerfmeta.fields import grid_kernels
 from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
 from nerfmeta.fields.grid_ops import corners_from_coords, trilinear_gather
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
@@ -100,8 +105,6 @@ def test_fused_backward_equals_the_gather_paths_scatter():
 @needs_numba
 @pytest.mark.parametrize("threads", [2, 3])
 def test_lookups_split_over_threads_give_the_one_thread_values_and_gradients_bit_for_bit(threads, monkeypatch):
-    from nerfmeta.fields import grid_kernels
-
     g = torch.Generator().manual_seed(threads)
     grid = torch.randn(3, *SIZE, generator=g, dtype=torch.float32, requires_grad=True)
     x = _coords(5000, g, torch.float32)  # ~40 points a cell: every corner plane is written by many points
@@ -132,8 +135,6 @@ def test_lookups_split_over_threads_give_the_one_thread_values_and_gradients_bit
     ("0", None, True), (None, "PASSIVE", True), ("300000", "passive", True), (None, "active", False),
 ])
 def test_lookups_split_only_while_openmp_workers_wait_briefly(spincount, policy, split, monkeypatch):
-    from nerfmeta.fields import grid_kernels
-
     for name, value in (("GOMP_SPINCOUNT", spincount), ("OMP_WAIT_POLICY", policy)):
         if value is None:
             monkeypatch.delenv(name, raising=False)
@@ -151,10 +152,6 @@ def test_lookups_split_only_while_openmp_workers_wait_briefly(spincount, policy,
     ("import torch, nerfmeta", None, None),  # torch first: too late for libgomp, so left alone
 ])
 def test_importing_nerfmeta_before_torch_shortens_the_openmp_spin(code, before, after):
-    import os
-    import subprocess
-    import sys
-
     env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
     if before is not None:
         env["GOMP_SPINCOUNT"] = before
@@ -228,7 +225,7 @@ def test_interp_points_equals_interp_gather_with_world_points_outside_the_box_cl
 
 @needs_numba
 def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monkeypatch):
-    from nerfmeta.fields import _grid_numba, grid_kernels
+    from nerfmeta.fields import _grid_numba
 
     def broken(*_):
         raise RuntimeError("no LLVM target")
