@@ -146,6 +146,89 @@ def test_lookups_split_only_while_openmp_workers_wait_briefly(spincount, policy,
     assert grid_kernels._parts(grid_kernels.SPLIT_MIN_POINTS - 1) == 1
 
 
+def _sorting(monkeypatch, shift: int = 1) -> None:
+    """Every lookup of 1000 points or more visits its points by blocks of ``2**shift`` cells (as a grid larger than the cache would)."""
+    monkeypatch.setattr(grid_kernels, "SPLIT_MIN_POINTS", 1000)
+    monkeypatch.setattr(grid_kernels, "SORT_MIN_BYTES", 0)
+    monkeypatch.setattr(grid_kernels, "SORT_BLOCK_SHIFT", shift)
+
+
+@needs_numba
+def test_block_order_is_a_stable_sort_of_the_points_by_grid_block():
+    g = torch.Generator().manual_seed(8)
+    size = (9, 7, 12)
+    x = torch.rand(3, 2000, generator=g) * torch.tensor([[s - 1.0] for s in size])
+    x[:, :5] = torch.tensor([[8.0, 0.0, 3.9, -1.0, float("nan")], [6.0, 0.0, 2.0, 0.5, 1.0], [11.0, 0.0, 4.0, 0.5, 1.0]])
+    order, ordered = grid_kernels._kernels().block_order(x.numpy(), *size, 2)
+    # independently: lower corner (clamped to size - 2, NaN to 0), block = corner // 4, keys in x-y-z memory order
+    top = torch.tensor([[s - 2] for s in size])
+    corner = torch.minimum(torch.nan_to_num(x, nan=0.0).clamp(min=0).floor().long(), top)
+    blocks = [int(t) // 4 + 1 for t in top[:, 0]]
+    key = ((corner[0] // 4) * blocks[1] + corner[1] // 4) * blocks[2] + corner[2] // 4
+    assert torch.equal(torch.from_numpy(order), torch.sort(key, stable=True).indices)
+    torch.testing.assert_close(torch.from_numpy(ordered), x[:, order], rtol=0, atol=0, equal_nan=True)
+    assert key[order].diff().min() >= 0 and len(set(order.tolist())) == 2000
+
+
+@needs_numba
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lookups_visiting_points_by_block_give_the_same_values_and_the_same_gradients_to_rounding(threads, monkeypatch):
+    g = torch.Generator().manual_seed(9)
+    size = (12, 10, 14)
+    grid = torch.randn(3, *size, generator=g, requires_grad=True)
+    x = (torch.rand(3, 6000, generator=g) * 1.2 - 0.1) * torch.tensor([[s - 1.0] for s in size])
+    upstream = torch.randn(3, 6000, generator=g)
+    monkeypatch.setenv("GOMP_SPINCOUNT", "10000")
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+
+    def lookup_and_grad():
+        grid.grad = None
+        out = trilinear_coords(grid, x)
+        (out * upstream).sum().backward()
+        return out.detach(), grid.grad.clone()
+
+    monkeypatch.setattr(grid_kernels, "SPLIT_MIN_POINTS", 1000)
+    ray_order = lookup_and_grad()
+    _sorting(monkeypatch)
+    orders = []
+    real = grid_kernels._ordered
+    monkeypatch.setattr(grid_kernels, "_ordered", lambda *a: orders.append(real(*a)) or orders[-1])
+    by_block = lookup_and_grad()
+    assert len(orders) == 1 and len(orders[0][0]) == 6000  # sorted once; the backward's scatter reuses the order
+    assert torch.equal(by_block[0], ray_order[0])  # each point's arithmetic is unchanged
+    assert not torch.equal(by_block[1], ray_order[1])  # the scatter's sums do run in another order
+    torch.testing.assert_close(by_block[1], ray_order[1], rtol=1e-5, atol=1e-5)
+    if threads == 2:  # split over threads, by block: still the one-thread result bit for bit
+        monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+        assert all(torch.equal(a, b) for a, b in zip(lookup_and_grad(), by_block))
+
+
+@needs_numba
+def test_lookups_visiting_points_by_block_pass_gradcheck_and_gradgradcheck(monkeypatch):
+    _sorting(monkeypatch, shift=0)
+    monkeypatch.setattr(grid_kernels, "SPLIT_MIN_POINTS", 30)
+    g = torch.Generator().manual_seed(10)
+    grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64, requires_grad=True)
+    x = _coords(40, g)
+    torch.autograd.gradcheck(lambda v: trilinear_coords(v, x), (grid,))
+    torch.autograd.gradgradcheck(lambda v: trilinear_coords(v, x) ** 2, (grid,))
+
+
+def test_only_grids_larger_than_the_last_level_cache_are_visited_by_block(tmp_path, monkeypatch):
+    for index, (level, size) in enumerate([(1, "32K"), (1, "32K"), (2, "512K"), (3, "16M")]):
+        (tmp_path / f"index{index}").mkdir()
+        (tmp_path / f"index{index}" / "level").write_text(f"{level}\n")
+        (tmp_path / f"index{index}" / "size").write_text(f"{size}\n")
+    assert grid_kernels.last_level_cache_bytes(tmp_path) == 16 << 20
+    assert grid_kernels.last_level_cache_bytes(tmp_path / "missing") == 32 << 20
+    monkeypatch.setattr(grid_kernels, "SORT_MIN_BYTES", 16 << 20)
+    x = torch.zeros(3, grid_kernels.SPLIT_MIN_POINTS)
+    assert len(grid_kernels._ordered((1, 256, 128, 128), 4, x)[0]) == 0  # exactly the cache's size: as given
+    if fused_available():
+        assert len(grid_kernels._ordered((1, 256, 128, 129), 4, x)[0]) == x.shape[1]
+        assert len(grid_kernels._ordered((1, 256, 128, 129), 4, x[:, 1:])[0]) == 0  # too few points to pay
+
+
 @pytest.mark.parametrize(("code", "before", "after"), [
     ("import nerfmeta", None, "10000"),  # as the CLI starts: nerfmeta before torch
     ("import nerfmeta", "250", "250"),  # the user's own value is kept
