@@ -195,6 +195,10 @@ def test_lookups_visiting_points_by_block_give_the_same_values_and_the_same_grad
     monkeypatch.setattr(grid_kernels, "_ordered", lambda *a: orders.append(real(*a)) or orders[-1])
     by_block = lookup_and_grad()
     assert len(orders) == 1 and len(orders[0][0]) == 6000  # sorted once; the backward's scatter reuses the order
+    with torch.no_grad():  # a render: its chunks' rays are coherent already, so it keeps their order
+        assert torch.equal(trilinear_coords(grid, x), ray_order[0]) and len(orders[-1][0]) == 0
+    trilinear_coords(grid.detach(), x)
+    assert len(orders) == 3 and len(orders[-1][0]) == 0
     assert torch.equal(by_block[0], ray_order[0])  # each point's arithmetic is unchanged
     assert not torch.equal(by_block[1], ray_order[1])  # the scatter's sums do run in another order
     torch.testing.assert_close(by_block[1], ray_order[1], rtol=1e-5, atol=1e-5)

@@ -27,7 +27,9 @@ so in ray order most corner reads miss the caches. On the 2-core CPU a beer fit'
 (a 49 MB colour grid) took 137 ms against 171 (medians of three 120-s fits; 955 steps against 862), and smaller
 grids measured no faster, so they keep the ray order (BENCHMARKS.md, *Fused grid lookups*). The order changes only
 which point is visited when: a gather is the same bit for bit, a scatter adds each value's terms in another order
-(float rounding), the same on every run and for any number of threads.
+(float rounding), the same on every run and for any number of threads. Lookups without a gradient (test renders,
+videos) keep the ray order: a render chunk's rays are of neighbouring pixels, coherent already, and sorted the
+full-size beer render ran at 93.5k rays/s against 103.8k.
 
 The kernels are compiled on first use and cached on disk (numba's ``cache=True``): about 1.4 s once per machine, then
 about 0.6 s a process to import numba and load them, which the backbones' ``warm_up`` spends before a
@@ -54,7 +56,8 @@ import torch
 
 from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear_gather
 
-__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "short_openmp_wait", "trilinear_coords"]
+__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "last_level_cache_bytes", "short_openmp_wait",
+           "trilinear_coords"]
 
 _NUMPY_DTYPE = {torch.float32: numpy.float32, torch.float64: numpy.float64}
 _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
@@ -62,6 +65,7 @@ _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
 SPLIT_MIN_POINTS = 16384
 """Lookups of at least this many points are split over torch's threads (below, a thread hand-off costs more than it saves)."""
 SHORT_SPINCOUNT = 100_000
+"""The largest ``GOMP_SPINCOUNT`` :func:`short_openmp_wait` counts as short (libgomp's default is 300,000)."""
 
 
 def last_level_cache_bytes(cpu_dir: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int:
@@ -84,7 +88,6 @@ density grid as well was no faster (BENCHMARKS.md, *Fused grid lookups*)."""
 SORT_BLOCK_SHIFT = 4
 """The blocks :data:`SORT_MIN_BYTES`'s sort orders points by are ``2**SORT_BLOCK_SHIFT`` cells a side (8 and 16 measured alike)."""
 _NO_ORDER = numpy.empty(0, dtype=numpy.int64)
-"""The largest ``GOMP_SPINCOUNT`` :func:`short_openmp_wait` counts as short (libgomp's default is 300,000)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -171,11 +174,13 @@ def _split(kernel: Callable[..., None], calls: list[tuple[Any, ...]]) -> None:
         future.result()
 
 
-def _ordered(grid_shape: tuple[int, ...], itemsize: int, x: torch.Tensor) -> tuple[numpy.ndarray, numpy.ndarray]:
+def _ordered(grid_shape: tuple[int, ...], itemsize: int, x: torch.Tensor, by_block: bool = True,
+             ) -> tuple[numpy.ndarray, numpy.ndarray]:
     """The order a lookup of a ``grid_shape`` grid visits the points ``x`` (3, N) in, and their coordinates in that
-    order: by block of the grid when the lookup is large (:data:`SORT_MIN_BYTES`), else as given (an empty order)."""
+    order: by block of the grid when ``by_block`` and the lookup is large (:data:`SORT_MIN_BYTES`), else as given
+    (an empty order)."""
     xs = x.numpy()
-    if x.shape[1] < SPLIT_MIN_POINTS or numpy.prod(grid_shape) * itemsize <= SORT_MIN_BYTES:
+    if not by_block or x.shape[1] < SPLIT_MIN_POINTS or numpy.prod(grid_shape) * itemsize <= SORT_MIN_BYTES:
         return _NO_ORDER, xs
     return _kernels().block_order(xs, *grid_shape[1:], SORT_BLOCK_SHIFT)
 
@@ -203,18 +208,18 @@ class _TrilinearCoords(torch.autograd.Function):
     """``out[c, n]`` = trilinear value of ``grid[c]`` at corner coordinates ``x[:, n]``; gradient to the grid only."""
 
     @staticmethod
-    def forward(ctx, grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, grid: torch.Tensor, x: torch.Tensor, by_block: bool) -> torch.Tensor:  # type: ignore[override]
         ctx.save_for_backward(x)
         ctx.grid_shape = tuple(grid.shape)
-        ctx.points = _ordered(ctx.grid_shape, grid.element_size(), x)  # the backward's scatter visits them alike
+        ctx.points = _ordered(ctx.grid_shape, grid.element_size(), x, by_block)  # the backward's scatter visits them alike
         return _gather(grid, ctx.points)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
         (x,) = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
-            return None, None
-        return _ScatterCoords.apply(grad_out, x, ctx.grid_shape, ctx.points), None
+            return None, None, None
+        return _ScatterCoords.apply(grad_out, x, ctx.grid_shape, ctx.points), None, None
 
 
 class _ScatterCoords(torch.autograd.Function):
@@ -230,7 +235,7 @@ class _ScatterCoords(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
         (x,) = ctx.saved_tensors
-        return _TrilinearCoords.apply(grad, x), None, None, None
+        return _TrilinearCoords.apply(grad, x, True), None, None, None
 
 
 def trilinear_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -248,7 +253,8 @@ def trilinear_coords(grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """
     x = x.detach()
     if fused_for(grid, x):
-        return _TrilinearCoords.apply(grid, x.contiguous())
+        # by block only where a gradient is taken: a render's chunk is rays of neighbouring pixels, coherent already
+        return _TrilinearCoords.apply(grid, x.contiguous(), torch.is_grad_enabled() and grid.requires_grad)
     size = tuple(grid.shape[1:])
     return trilinear_gather(grid.reshape(grid.shape[0], -1), *corners_from_coords(x, size))  # type: ignore[arg-type]
 
