@@ -280,3 +280,49 @@ def test_callbacks_that_watch_the_final_evaluation_hear_each_view(tiny_scene, tm
                       callbacks=[Watcher(), lambda record, model, state: steps.append(record.iter)])
     n = summary["test_views"]
     assert n == 4 and heard == [(k, n) for k in range(n + 1)] and steps == [1, 2, 3]  # a plain callback still works
+
+
+@pytest.mark.parametrize(("n_views", "height", "width", "max_rays", "stride"), [
+    (4, 1263, 710, 262144, 4),  # beer at full size: 4 x 316 x 177 = 224k rays (3: 4 x 421 x 237 = 399k, too many)
+    (4, 178, 316, 262144, 1),  # beer at --downscale 4: every pixel fits
+    (4, 1263, 710, 0, 1),  # 0: no limit
+    (1, 10, 10, 25, 2),  # exactly at the limit: 5 x 5
+    (1, 10, 10, 24, 3),  # one ray over it: 3 x 3 (rows 1, 4, 7)
+    (3, 10, 7, 1, 10),  # never less than one pixel a view
+])
+def test_intermediate_evaluations_take_the_smallest_pixel_stride_within_their_ray_budget(n_views, height, width, max_rays, stride):
+    from nerfmeta.fit.evaluate import pixel_stride, strided_rays
+
+    assert pixel_stride(n_views, height, width, max_rays) == stride
+    if 1 < stride < max(height, width):  # the smallest that fits (the last case: one pixel a view, over the budget)
+        assert strided_rays(n_views, height, width, stride) <= max_rays < strided_rays(n_views, height, width, stride - 1)
+
+
+def test_a_strided_render_is_the_full_renders_pixels_on_that_grid(tiny_scene):
+    from nerfmeta.fit.evaluate import render_view, strided_rays
+
+    scene = load_scene(tiny_scene)
+    model = build_model("grid", config_from_dict("grid", {**vars_of(default_config("grid")), "coarse_iters": 0,
+                                                          "num_voxels": 4096}), scene.bounds, seed=0)
+    view, white = scene.splits["test"][0], torch.ones(3)
+    full, strided = render_view(model, scene, view, white), render_view(model, scene, view, white, stride=3)
+    assert strided.rgb.shape == (11, 11, 3) == full.rgb[1::3, 1::3].shape  # 32 px: rows and columns 1, 4, ..., 31
+    assert len(strided.rgb.reshape(-1, 3)) == strided_rays(1, 32, 32, 3)
+    torch.testing.assert_close(strided.rgb, full.rgb[1::3, 1::3], rtol=0, atol=1e-6)
+    torch.testing.assert_close(strided.target, full.target[1::3, 1::3], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("max_rays", [0, 1000])
+def test_intermediate_evaluations_over_their_ray_budget_score_a_pixel_grid_and_say_so(tiny_scene, max_rays):
+    scene = load_scene(tiny_scene)  # 4 test views of 32 x 32: 4096 rays
+    model = build_model("grid", config_from_dict("grid", {**vars_of(default_config("grid")), "coarse_iters": 0,
+                                                          "num_voxels": 4096}), scene.bounds, seed=0)
+    config = FitConfig(iters=4, batch_rays=64, eval_every=2, eval_views=0, eval_max_rays=max_rays, final_ssim=False)
+    result = fit(model, scene, config, background=torch.ones(3))
+    assert [r.test_psnr is not None for r in result.history] == [False, True, False, True]
+    decision = result.state.decisions.get("eval_stride")
+    if max_rays == 0:
+        assert decision is None
+    else:  # 4 x 16 x 16 = 1024 > 1000, 4 x 11 x 11 = 484: every third pixel
+        assert decision["value"] == 3 and decision["evidence"]["rays"] == 484
+    assert all(r.rgb.shape == (32, 32, 3) for r in result.final.renders)  # the final evaluation: every pixel

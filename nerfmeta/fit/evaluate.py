@@ -73,14 +73,34 @@ def render_rays(
     return torch.cat([rgb for rgb, _ in parts]), sum(count for _, count in parts)
 
 
+def strided_rays(n_views: int, height: int, width: int, stride: int) -> int:
+    """Rays :func:`render_view` renders for ``n_views`` views of ``height`` x ``width`` at ``stride``."""
+    return n_views * len(range(stride // 2, height, stride)) * len(range(stride // 2, width, stride))
+
+
+def pixel_stride(n_views: int, height: int, width: int, max_rays: int) -> int:
+    """The smallest stride ``s`` at which every ``s``-th pixel row and column of ``n_views`` views of ``height`` x
+    ``width`` holds at most ``max_rays`` rays in all (1: every pixel; also for ``max_rays`` 0, no limit), but never
+    less than one pixel a view."""
+    s = 1
+    while max_rays > 0 and s < max(height, width) and strided_rays(n_views, height, width, s) > max_rays:
+        s += 1
+    return s
+
+
 @torch.no_grad()
 def render_view(
-    model: RadianceModel, scene: Scene, view: int, background: torch.Tensor, *, chunk: int = 16384
+    model: RadianceModel, scene: Scene, view: int, background: torch.Tensor, *, chunk: int = 16384, stride: int = 1
 ) -> ViewRender:
-    """Render every pixel of ``view`` (no jitter) through :func:`render_rays` (``chunk``: most rays at once)."""
+    """Render ``view`` (no jitter) through :func:`render_rays` (``chunk``: most rays at once): every pixel, or with
+    ``stride`` s > 1 the pixels of every s-th row and column (from ``s // 2``), a regular sample of the view."""
     rays = view_rays(scene, view, background.device)
-    rgb, samples = render_rays(model, rays, background, chunk=chunk)
     h, w = scene.height, scene.width
+    if stride > 1:
+        rows, cols = torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride)
+        rays = rays[(rows[:, None] * w + cols[None, :]).reshape(-1).to(rays.origins.device)]
+        h, w = len(rows), len(cols)
+    rgb, samples = render_rays(model, rays, background, chunk=chunk)
     return ViewRender(view, rgb.clamp(0, 1).reshape(h, w, 3).cpu(), rays.target.reshape(h, w, 3).cpu(), samples / len(rays))
 
 
@@ -114,9 +134,11 @@ def evaluate_views(
     chunk: int = 16384,
     lpips_model: torch.nn.Module | None = None,
     on_view: Callable[[int, int], None] | None = None,
+    stride: int = 1,
 ) -> EvalResult:
     """Render ``views`` and score them against the ground truth (LPIPS too with ``lpips_model``, see
-    :func:`nerfmeta.metrics.load_lpips`). ``on_view(done, total)`` is called before the first view and after each."""
+    :func:`nerfmeta.metrics.load_lpips`). ``on_view(done, total)`` is called before the first view and after each.
+    ``stride`` > 1 scores every ``stride``-th pixel row and column of each view (:func:`render_view`)."""
     was_training = model.training
     model.eval()
     renders: list[ViewRender] = []
@@ -125,7 +147,7 @@ def evaluate_views(
             for v in views:
                 if on_view is not None:
                     on_view(len(renders), len(views))
-                renders.append(render_view(model, scene, v, background, chunk=chunk))
+                renders.append(render_view(model, scene, v, background, chunk=chunk, stride=stride))
             if on_view is not None:
                 on_view(len(renders), len(views))
     finally:

@@ -28,7 +28,7 @@ import torch
 from nerfmeta.config import bounded, check_fields
 from nerfmeta.data.scene import Scene
 from nerfmeta.fields.base import Decision, RadianceModel, total_loss
-from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views
+from nerfmeta.fit.evaluate import MSE_FLOOR, EvalResult, evaluate_views, pixel_stride, strided_rays
 from nerfmeta.fit.guard import DivergenceGuard, GuardConfig, GuardEvent
 from nerfmeta.fit.sampler import RaySampler
 from nerfmeta.fit.views import ViewErrors
@@ -59,6 +59,8 @@ class FitConfig:
     """Evaluate test PSNR every this many iterations (0: only at the end)."""
     eval_views: int = bounded(4, low=0)
     """Test views rendered at intermediate evaluations (0: all); the final evaluation uses all."""
+    eval_max_rays: int = bounded(262144, low=0)
+    """Most rays an intermediate evaluation renders: larger views are scored on every s-th pixel row and column, s as small as fits (0: every pixel); the final evaluation renders every pixel."""
     checkpoint_every: int = bounded(500, low=0)
     """Write a checkpoint every this many iterations (0: only at the end)."""
     chunk_rays: int = bounded(16384, low=1)
@@ -270,8 +272,16 @@ def fit(
         """Test PSNR on the first ``eval_views`` test views (an intermediate evaluation)."""
         nonlocal evaluated_at
         views = list(test_views) if config.eval_views <= 0 else list(test_views)[: config.eval_views]
+        stride = pixel_stride(len(views), scene.height, scene.width, config.eval_max_rays)
+        if stride > 1 and "eval_stride" not in state.decisions:  # said once, at the first
+            rays = strided_rays(len(views), scene.height, scene.width, stride)
+            note_decisions([Decision("eval_stride", stride, (
+                f"intermediate evaluations score one pixel in {stride} along each row and column of their {len(views)} views "
+                f"({rays} rays, at most eval_max_rays={config.eval_max_rays}, instead of "
+                f"{len(views) * scene.height * scene.width}); the final evaluation renders every pixel"),
+                {"views": len(views), "rays": rays, "max_rays": config.eval_max_rays})])
         t_eval = time.perf_counter()
-        ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays)
+        ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays, stride=stride)
         state.eval_time_s += time.perf_counter() - t_eval
         state.last_test_psnr, evaluated_at = ev.psnr, state.step
         return ev.psnr
