@@ -325,4 +325,5 @@ def test_intermediate_evaluations_over_their_ray_budget_score_a_pixel_grid_and_s
         assert decision is None
     else:  # 4 x 16 x 16 = 1024 > 1000, 4 x 11 x 11 = 484: every third pixel
         assert decision["value"] == 3 and decision["evidence"]["rays"] == 484
+        assert decision["reason"] in result.history[2].event  # noted in the next record, as every decision
     assert all(r.rgb.shape == (32, 32, 3) for r in result.final.renders)  # the final evaluation: every pixel

@@ -267,6 +267,7 @@ def fit(
         state.optimizer_state = optimizer.state_dict()
 
     evaluated_at = -1  # the step of the last intermediate evaluation
+    eval_notes: list[str] = []  # decisions an intermediate evaluation made, for the next record's event
 
     def partial_eval() -> float:
         """Test PSNR on the first ``eval_views`` test views (an intermediate evaluation)."""
@@ -275,11 +276,11 @@ def fit(
         stride = pixel_stride(len(views), scene.height, scene.width, config.eval_max_rays)
         if stride > 1 and "eval_stride" not in state.decisions:  # said once, at the first
             rays = strided_rays(len(views), scene.height, scene.width, stride)
-            note_decisions([Decision("eval_stride", stride, (
+            eval_notes.extend(note_decisions([Decision("eval_stride", stride, (
                 f"intermediate evaluations score one pixel in {stride} along each row and column of their {len(views)} views "
                 f"({rays} rays, at most eval_max_rays={config.eval_max_rays}, instead of "
                 f"{len(views) * scene.height * scene.width}); the final evaluation renders every pixel"),
-                {"views": len(views), "rays": rays, "max_rays": config.eval_max_rays})])
+                {"views": len(views), "rays": rays, "max_rays": config.eval_max_rays})]))
         t_eval = time.perf_counter()
         ev = evaluate_views(model, scene, views, background, with_ssim=False, chunk=config.chunk_rays, stride=stride)
         state.eval_time_s += time.perf_counter() - t_eval
@@ -378,8 +379,9 @@ def fit(
             train_psnr=float(mse_to_psnr(mse.detach().clamp(min=MSE_FLOOR))),  # 100 dB, not inf, for a perfect batch
             samples_per_ray=out.samples_evaluated / len(batch),
             lr_scale=scale,
-            event="; ".join(m for m in (*notes, event.message, *rollbacks) if m) or None,
+            event="; ".join(m for m in (*notes, event.message, *rollbacks, *eval_notes) if m) or None,
         )
+        eval_notes.clear()
         last = state.step >= config.iters or (config.time_budget_s is not None and state.time_s >= config.time_budget_s)
         if test_views and last:
             final = final_eval()
