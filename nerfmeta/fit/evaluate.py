@@ -73,9 +73,14 @@ def render_rays(
     return torch.cat([rgb for rgb, _ in parts]), sum(count for _, count in parts)
 
 
+def strided_pixels(size: int, stride: int) -> range:
+    """The pixel rows (or columns) of ``size`` that :func:`render_view` renders at ``stride``: every ``stride``-th, from ``stride // 2``."""
+    return range(stride // 2, size, stride)
+
+
 def strided_rays(n_views: int, height: int, width: int, stride: int) -> int:
     """Rays :func:`render_view` renders for ``n_views`` views of ``height`` x ``width`` at ``stride``."""
-    return n_views * len(range(stride // 2, height, stride)) * len(range(stride // 2, width, stride))
+    return n_views * len(strided_pixels(height, stride)) * len(strided_pixels(width, stride))
 
 
 def pixel_stride(n_views: int, height: int, width: int, max_rays: int) -> int:
@@ -97,7 +102,7 @@ def render_view(
     rays = view_rays(scene, view, background.device)
     h, w = scene.height, scene.width
     if stride > 1:
-        rows, cols = torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride)
+        rows, cols = (torch.tensor(strided_pixels(n, stride)) for n in (h, w))
         rays = rays[(rows[:, None] * w + cols[None, :]).reshape(-1).to(rays.origins.device)]
         h, w = len(rows), len(cols)
     rgb, samples = render_rays(model, rays, background, chunk=chunk)
