@@ -16,6 +16,7 @@ from nerfmeta.fields import grid_kernels
 from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
 from nerfmeta.fields.grid_ops import corners_from_coords, trilinear_gather
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
+from nerfmeta.fused import load as load_kernels
 
 needs_numba = pytest.mark.skipif(not fused_available(), reason="numba is not installed (the fused kernels are optional)")
 SIZE = (4, 5, 6)
@@ -318,7 +319,7 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
         raise RuntimeError("no LLVM target")
 
     monkeypatch.setattr(_grid_numba, "gather", broken)
-    grid_kernels._kernels.cache_clear()
+    load_kernels.cache_clear()
     try:
         with pytest.warns(UserWarning, match="numba could not compile the grid lookups .*no LLVM target"):
             assert not fused_available()
@@ -328,7 +329,7 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
         torch.testing.assert_close(trilinear_coords(grid, x), _reference(grid, x), rtol=0, atol=1e-12)
     finally:
         monkeypatch.undo()
-        grid_kernels._kernels.cache_clear()
+        load_kernels.cache_clear()
     assert fused_available()
 
 

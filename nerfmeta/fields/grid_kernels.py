@@ -44,23 +44,21 @@ from __future__ import annotations
 
 import functools
 import os
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy
 import torch
 
+from nerfmeta import fused
 from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear_gather
 
 __all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "last_level_cache_bytes", "short_openmp_wait",
            "trilinear_coords"]
 
 _NUMPY_DTYPE = {torch.float32: numpy.float32, torch.float64: numpy.float64}
-_ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
 
 SPLIT_MIN_POINTS = 16384
 """Lookups of at least this many points are split over torch's threads (below, a thread hand-off costs more than it saves)."""
@@ -90,32 +88,23 @@ SORT_BLOCK_SHIFT = 4
 _NO_ORDER = numpy.empty(0, dtype=numpy.int64)
 
 
-@functools.lru_cache(maxsize=1)
-def _kernels() -> Any:
-    """The compiled kernels' module (:mod:`nerfmeta.fields._grid_numba`), or None without a working numba.
+def _smoke(kernels: Any) -> None:
+    """Runs the block sort, a gather and a scatter for float32 on a 2 x 2 x 2 grid (:func:`nerfmeta.fused.load`)."""
+    grid, x = numpy.zeros((1, 2, 2, 2), numpy.float32), numpy.full((3, 1), 0.5, numpy.float32)
+    out = numpy.empty((1, 1), numpy.float32)
+    order, x = kernels.block_order(x, 2, 2, 2, SORT_BLOCK_SHIFT)
+    kernels.gather(grid, x, out, order, 0, 1)
+    kernels.scatter(out, x, grid, order, 0, 1)
 
-    Both kernels are compiled (or read from numba's cache) here for float32, on a 2 x 2 x 2 grid, so a numba that
-    imports but cannot compile on this machine means the PyTorch path, with a warning, not a failed fit.
-    """
-    try:
-        from nerfmeta.fields import _grid_numba
-    except ImportError:
-        return None
-    try:
-        grid, x = numpy.zeros((1, 2, 2, 2), numpy.float32), numpy.full((3, 1), 0.5, numpy.float32)
-        out = numpy.empty((1, 1), numpy.float32)
-        order, x = _grid_numba.block_order(x, 2, 2, 2, SORT_BLOCK_SHIFT)
-        _grid_numba.gather(grid, x, out, order, 0, 1)
-        _grid_numba.scatter(out, x, grid, order, 0, 1)
-    except Exception as exc:  # noqa: BLE001 - any compiler failure: fall back, say why
-        warnings.warn(f"numba could not compile the grid lookups ({type(exc).__name__}: {exc}); using PyTorch's", stacklevel=2)
-        return None
-    return _grid_numba
+
+def _kernels() -> Any:
+    """The compiled kernels' module (:mod:`nerfmeta.fields._grid_numba`), or None without a working numba."""
+    return fused.load("nerfmeta.fields._grid_numba", _smoke, "grid lookups")
 
 
 def fused_available() -> bool:
     """True when the fused CPU kernels can be used (numba importable and not switched off)."""
-    return _ENABLED[0] and _kernels() is not None
+    return fused.enabled() and _kernels() is not None
 
 
 def fused_for(grid: torch.Tensor, x: torch.Tensor) -> bool:
@@ -125,15 +114,8 @@ def fused_for(grid: torch.Tensor, x: torch.Tensor) -> bool:
             and grid.dtype in _NUMPY_DTYPE)
 
 
-@contextmanager
-def fused_lookups(enabled: bool) -> Iterator[None]:
-    """Switch the fused kernels on or off inside the block (tests compare both paths)."""
-    before = _ENABLED[0]
-    _ENABLED[0] = enabled
-    try:
-        yield
-    finally:
-        _ENABLED[0] = before
+fused_lookups = fused.fused_kernels
+"""Switch the fused kernels on or off inside a block (tests compare both paths; :func:`nerfmeta.fused.fused_kernels`)."""
 
 
 def short_openmp_wait() -> bool:

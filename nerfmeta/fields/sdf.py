@@ -305,6 +305,7 @@ class SdfField(RadianceModel):
     @classmethod
     def warm_up(cls) -> None:
         """Load the fused CPU lookups of the colour grid (``color_grid``; :mod:`~nerfmeta.fields.grid_kernels`)."""
+        super().warm_up()
         fused_available()
 
     def __init__(self, config: SdfConfig, bounds: torch.Tensor):

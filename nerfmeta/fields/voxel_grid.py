@@ -487,6 +487,7 @@ class VoxelGrid(RadianceModel):
     def warm_up(cls) -> None:
         """Load the fused CPU lookups (:mod:`~nerfmeta.fields.grid_kernels`: about half a second the first time in a
         process with numba's cache warm)."""
+        super().warm_up()
         fused_available()
 
     def _init_coarse(self, bounds: torch.Tensor, size: tuple[int, int, int]) -> None:

@@ -9,16 +9,28 @@ alphas, so the transmittance ``T_i = exp(-sum_{j<i} tau_j)`` is computed in log 
 For any finite non-negative ``sigma`` (tested up to 1e6) and ``delta`` (1e-10 to 1e10, and 0)
 the outputs and their gradients are finite, every weight is in [0, 1] and the weights of a ray
 sum to ``1 - T_final`` (at most 1, to float rounding).
+
+On a CPU the packed compositor runs as two fused kernels (numba; :mod:`nerfmeta.render._volume_numba`): the
+weights from the optical depths, and the weighted sums of colour and depth, each with its backward in one pass,
+where PyTorch takes some twenty whole-array operations for the same. On the 2-core CPU a 4096-ray step of a beer
+fit (about 430k samples) spends about half the time compositing (BENCHMARKS.md, *Fused compositing*). Values and
+gradients match PyTorch's path to float rounding (the kernels compute the transmittance in float64); a second
+derivative (MAML) is taken through PyTorch's ops. Without numba, on a GPU, or with ``NERFMETA_FUSED_LOOKUPS=0``,
+PyTorch's path runs (:mod:`nerfmeta.fused`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Callable
 
+import numpy
 import torch
 import torch.nn.functional as F
+
+from nerfmeta import fused
 
 
 def softplus_shift_for_alpha(alpha_init: float, interval: float = 1.0) -> float:
@@ -122,6 +134,13 @@ def packed_weights(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tup
         weights (M,) in [0, 1]; t_final (n_rays,) transmittance after each ray's last sample
         (1 for rays without samples), so that per ray ``sum(weights) + t_final == 1``.
     """
+    if _fused_for(tau, ray_idx):
+        return _PackedWeights.apply(tau, ray_idx.contiguous(), n_rays)
+    return _packed_weights_torch(tau, ray_idx, n_rays)
+
+
+def _packed_weights_torch(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`packed_weights` in PyTorch's ops (differentiable to any order)."""
     log_t_before, ray_sum = _packed_log_transmittance(tau, ray_idx, n_rays)
     return torch.exp(log_t_before).to(tau.dtype) * alpha_from_tau(tau), torch.exp(-ray_sum).to(tau.dtype)
 
@@ -230,9 +249,115 @@ def render_packed(
             sel = None
     else:
         sel = None
+    colour = rgb_fn(sel, ray_idx if sel is None else ray_idx.index_select(0, sel))
+    if _fused_for(weights, ray_idx) and colour.dtype == weights.dtype and not t.requires_grad:
+        rgb, depth = _WeightedSums.apply(weights, colour, sel, ray_idx, t, n_rays)
+    else:
+        rgb, depth = _weighted_sums_torch(weights, colour, sel, ray_idx, t, n_rays)
+    return Composite(rgb=rgb + t_final[:, None] * background, acc=1.0 - t_final, depth=depth + t_final * far,
+                     weights=weights)
+
+
+def _weighted_sums_torch(weights: torch.Tensor, colour: torch.Tensor, sel: torch.Tensor | None, ray_idx: torch.Tensor,
+                         t: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per ray, the weighted sum of the colours (K, 3) of the samples ``sel`` (None: all) and of the distances ``t``
+    (M,) of every sample: (n_rays, 3), (n_rays,). PyTorch's ops (differentiable to any order)."""
     ray_c, w_c = (ray_idx, weights) if sel is None else (ray_idx.index_select(0, sel), weights.index_select(0, sel))
-    colour = rgb_fn(sel, ray_c)
     rgb = weights.new_zeros(n_rays, 3).index_add(0, ray_c, w_c[:, None] * colour)
-    rgb = rgb + t_final[:, None] * background
-    depth = weights.new_zeros(n_rays).index_add(0, ray_idx, weights * t) + t_final * far
-    return Composite(rgb=rgb, acc=1.0 - t_final, depth=depth, weights=weights)
+    return rgb, weights.new_zeros(n_rays).index_add(0, ray_idx, weights * t)
+
+
+# ----- the fused CPU kernels of the compositor ------------------------------------------------------------------
+
+_NUMPY_DTYPES = (torch.float32, torch.float64)
+_EVERY = numpy.empty(0, dtype=numpy.int64)
+
+
+def _smoke(kernels: ModuleType) -> None:
+    """Runs the four kernels on one float32 sample, with colours in both memory orders a field returns them in (a
+    grid lookup's ``(3, K)`` transposed, an MLP's ``(K, 3)``), so none compiles inside a fit (:func:`nerfmeta.fused.load`)."""
+    one, ray = numpy.ones(1, numpy.float32), numpy.zeros(1, numpy.int64)
+    em1, decay, t64, f64 = numpy.full(1, -0.5), numpy.full(1, 0.5), numpy.ones(1), numpy.ones(1)
+    kernels.weights_forward(em1, decay, ray, t64, one.copy(), f64)
+    kernels.weights_backward(em1, decay, ray, t64, f64, one, one, one.copy())
+    rgb = numpy.zeros((1, 3), numpy.float32)
+    for colour in (numpy.ones((1, 3), numpy.float32), numpy.ones((3, 1), numpy.float32).T):
+        kernels.composite_forward(one, colour, _EVERY, ray, one, rgb, one.copy())
+        kernels.composite_backward(one, colour, _EVERY, ray, one, rgb, one, one.copy(), numpy.empty_like(colour))
+
+
+def _kernels() -> ModuleType | None:
+    return fused.load("nerfmeta.render._volume_numba", _smoke, "compositing kernels")
+
+
+def fused_compositing() -> bool:
+    """True when :func:`render_packed` composites CPU tensors with the fused kernels (numba importable, its kernels
+    compiled or loaded, which this call does once per process, and not switched off)."""
+    return fused.enabled() and _kernels() is not None
+
+
+def _fused_for(values: torch.Tensor, ray_idx: torch.Tensor) -> bool:
+    """True when the compositor's kernels take these CPU float32/float64 samples."""
+    return (values.device.type == "cpu" and ray_idx.device.type == "cpu" and values.dtype in _NUMPY_DTYPES
+            and ray_idx.dtype == torch.int64 and fused_compositing())
+
+
+class _PackedWeights(torch.autograd.Function):
+    """:func:`packed_weights` by the fused kernels; a second derivative goes through PyTorch's ops."""
+
+    @staticmethod
+    def forward(ctx, tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int):  # type: ignore[override]
+        minus = -tau.detach().double()
+        em1, decay = torch.expm1(minus), torch.exp(minus)
+        t_before, weights, t_final = torch.empty_like(em1), torch.empty_like(tau), em1.new_ones(n_rays)
+        _kernels().weights_forward(em1.numpy(), decay.numpy(), ray_idx.numpy(), t_before.numpy(), weights.numpy(),
+                                   t_final.numpy())
+        ctx.save_for_backward(tau, ray_idx, em1, decay, t_before, t_final)
+        ctx.n_rays = n_rays
+        return weights, t_final.to(tau.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_w: torch.Tensor | None, grad_t: torch.Tensor | None):  # type: ignore[override]
+        tau, ray_idx, em1, decay, t_before, t_final = ctx.saved_tensors
+        grad_w = torch.zeros_like(tau) if grad_w is None else grad_w.contiguous()
+        grad_t = t_final.new_zeros(ctx.n_rays, dtype=tau.dtype) if grad_t is None else grad_t.contiguous()
+        if torch.is_grad_enabled():  # create_graph: a gradient that is itself differentiable
+            with torch.enable_grad():
+                outputs = _packed_weights_torch(tau, ray_idx, ctx.n_rays)
+            return torch.autograd.grad(outputs, tau, (grad_w, grad_t), create_graph=True)[0], None, None
+        grad_tau = torch.empty_like(tau)
+        _kernels().weights_backward(em1.numpy(), decay.numpy(), ray_idx.numpy(), t_before.numpy(), t_final.numpy(),
+                                    grad_w.detach().numpy(), grad_t.detach().numpy(), grad_tau.numpy())
+        return grad_tau, None, None
+
+
+class _WeightedSums(torch.autograd.Function):
+    """:func:`_weighted_sums_torch` by the fused kernels; a second derivative goes through PyTorch's ops."""
+
+    @staticmethod
+    def forward(ctx, weights: torch.Tensor, colour: torch.Tensor, sel: torch.Tensor | None,  # type: ignore[override]
+                ray_idx: torch.Tensor, t: torch.Tensor, n_rays: int):
+        weights, t = weights.contiguous(), t.to(weights.dtype).contiguous()  # colour as it comes (numba takes strides)
+        sel_np = _EVERY if sel is None else sel.contiguous().numpy()
+        rgb, depth = weights.new_zeros(n_rays, 3), weights.new_zeros(n_rays)
+        _kernels().composite_forward(weights.detach().numpy(), colour.detach().numpy(), sel_np, ray_idx.numpy(),
+                                     t.numpy(), rgb.numpy(), depth.numpy())
+        ctx.save_for_backward(weights, colour, ray_idx, t)
+        ctx.sel, ctx.sel_np, ctx.n_rays = sel, sel_np, n_rays
+        return rgb, depth
+
+    @staticmethod
+    def backward(ctx, grad_rgb: torch.Tensor | None, grad_depth: torch.Tensor | None):  # type: ignore[override]
+        weights, colour, ray_idx, t = ctx.saved_tensors
+        grad_rgb = weights.new_zeros(ctx.n_rays, 3) if grad_rgb is None else grad_rgb.contiguous()
+        grad_depth = weights.new_zeros(ctx.n_rays) if grad_depth is None else grad_depth.contiguous()
+        if torch.is_grad_enabled():  # create_graph: a gradient that is itself differentiable
+            with torch.enable_grad():
+                outputs = _weighted_sums_torch(weights, colour, ctx.sel, ray_idx, t, ctx.n_rays)
+            grads = torch.autograd.grad(outputs, (weights, colour), (grad_rgb, grad_depth), create_graph=True)
+            return grads[0], grads[1], None, None, None, None
+        grad_w, grad_colour = torch.empty_like(weights), torch.empty_like(colour)
+        _kernels().composite_backward(weights.detach().numpy(), colour.detach().numpy(), ctx.sel_np, ray_idx.numpy(),
+                                      t.numpy(), grad_rgb.detach().numpy(), grad_depth.detach().numpy(),
+                                      grad_w.numpy(), grad_colour.numpy())
+        return grad_w, grad_colour, None, None, None, None
