@@ -369,3 +369,37 @@ def test_test_time_renders_give_the_same_image_with_or_without_the_fused_kernels
             images.append(model(rays, background=torch.ones(3)).rgb)
     assert images[0].std() > 0.02  # a real image, not a blank
     torch.testing.assert_close(images[0], images[1], rtol=0, atol=1e-3)  # grid_sample rounds its coordinates
+
+
+@needs_numba
+def test_large_gradient_buffers_are_recycled_only_once_no_tensor_holds_them(monkeypatch):
+    """A scatter's gradient is reused (zeroed) only after every tensor made from it is gone, never while held."""
+    monkeypatch.setattr(grid_kernels, "RECYCLE_MIN_BYTES", 1000)
+    monkeypatch.setattr(grid_kernels, "_SPARES", type(grid_kernels._SPARES)())
+    g = torch.Generator().manual_seed(21)
+    grid = torch.randn(3, *SIZE, generator=g, dtype=torch.float64, requires_grad=True)  # 2880 bytes: recycled
+    x = _coords(50, g)
+
+    def grad_of(weights):
+        (grad,) = torch.autograd.grad((trilinear_coords(grid, x) * weights).sum(), grid)
+        return grad
+
+    w1, w2 = torch.randn(3, 50, generator=g, dtype=torch.float64), torch.randn(3, 50, generator=g, dtype=torch.float64)
+    first = grad_of(w1)
+    expected_first = first.clone()
+    second = grad_of(w2)  # the first is held: a new buffer
+    assert first.data_ptr() != second.data_ptr()
+    torch.testing.assert_close(first, expected_first, rtol=0, atol=0)
+    view = first[0]  # a view holds the buffer as well
+    address = first.data_ptr()
+    del first
+    third = grad_of(w2)
+    third_address = third.data_ptr()
+    assert third_address not in (address, second.data_ptr()) and view.data_ptr() == address
+    del view, third
+    fourth = grad_of(w1)  # the first and third buffers are free now: one is reused, zeroed first
+    assert fourth.data_ptr() in (address, third_address)
+    torch.testing.assert_close(fourth, expected_first, rtol=0, atol=0)
+    small = torch.randn(1, 2, 2, 2, dtype=torch.float64, requires_grad=True)  # 64 bytes: a fresh buffer each time
+    (a,) = torch.autograd.grad(trilinear_coords(small, torch.full((3, 1), 0.5, dtype=torch.float64)).sum(), small)
+    assert len(grid_kernels._SPARES) == 1
