@@ -184,7 +184,9 @@ RECYCLE_MIN_BYTES = 32 << 20
 """Gradient buffers of at least this size are recycled (:func:`_zeros`): glibc maps each allocation above 32 MiB
 afresh from the kernel and every page the scatter touches then faults in. On the 2-core CPU the scatter of beer's
 grown colour grid (3 x 160^3, 49 MB) took 29.5 ms into a fresh buffer and 18.7 ms into a recycled one zeroed in
-place; the 16 MB density grid 13.0 against 11.5 (BENCHMARKS.md, *Fused compositing*)."""
+place; the 16 MB density grid 13.0 against 11.5 (below 32 MiB glibc reuses its heap). In a beer fit, alternating every
+20 steps: 102.8 against 108.9 ms a step, and 107.3 against 114.7 in the other order (BENCHMARKS.md, *Fused
+compositing*)."""
 _SPARES: OrderedDict[tuple[tuple[int, ...], str], list[numpy.ndarray]] = OrderedDict()
 _SPARE_KEYS = 4  # the shapes kept: a fit's density and colour grids, and the pair before the last growth
 _SPARES_LOCK = threading.Lock()
