@@ -5,7 +5,9 @@ import math
 import pytest
 import torch
 
-from nerfmeta.render.contraction import InnerBox, contract, from_march, inner_box_from_cameras, inner_exit, to_march
+from nerfmeta.fused import fused_kernels
+from nerfmeta.render.contraction import (InnerBox, contract, from_march, fused_contraction, inner_box_from_cameras,
+                                          inner_exit, to_march)
 from nerfmeta.render.estimators import OccupancyGrid, contracted_march
 
 
@@ -101,3 +103,27 @@ def test_occupancy_grid_looks_up_contracted_positions():
     s = grid.sampling(o, d, torch.zeros(2), torch.full((2,), 5.0), step=0.05, jitter=torch.full((2,), 0.5))
     assert len(s) > 0 and bool((s.ray_idx == 0).all())  # only the ray towards the mark keeps samples
     assert bool((box.contract(o[s.ray_idx] + s.t[:, None] * d[s.ray_idx])[:, 0] > 1.75).all())
+
+
+@pytest.mark.skipif(not fused_contraction(torch.zeros(1, 3)), reason="numba is not installed (the fused kernels are optional)")
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_fused_contraction_gives_pytorchs_values_and_layout(dtype):
+    """The CPU kernel against :func:`contract` of the normalised points: near, far (1e12), on the box's faces, NaN and
+    infinite coordinates; component-major out; a gradient still taken through PyTorch's ops."""
+    g = torch.Generator().manual_seed(5)
+    box = InnerBox((0.3, -0.2, 1.1), 1.7, shell=0.6)
+    p = torch.cat([torch.randn(2000, 3, generator=g, dtype=torch.float64) * 4,
+                   torch.tensor([[0.3 + 1.7, -0.2, 1.1], [1e12, 3.0, -2.0], [float("nan"), 5.0, 0.0],
+                                 [0.0, float("inf"), 1.0], [-float("inf"), 0.0, 0.0]], dtype=torch.float64)]).to(dtype)
+    points = p.t().contiguous().t()  # component-major, as sample points come
+    fast = box.contract(points)
+    with fused_kernels(False):
+        slow = box.contract(points)
+    assert fast.stride() == slow.stride() == (1, len(p))
+    tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else {"rtol": 1e-6, "atol": 1e-6}
+    torch.testing.assert_close(fast, slow, equal_nan=True, **tol)
+    assert torch.isnan(fast[-3]).tolist() == torch.isnan(slow[-3]).tolist() == [True, False, False]
+    leaf = points.detach().clone().requires_grad_()
+    assert not fused_contraction(leaf) and box.contract(leaf).grad_fn is not None
+    with torch.no_grad():
+        assert fused_contraction(leaf)

@@ -24,9 +24,12 @@ that space, as DirectVoxGO v2's).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 
+import numpy
 import torch
 
+from nerfmeta import fused
 from nerfmeta.render.rays import intersect_aabb
 
 
@@ -50,6 +53,22 @@ def contract(p: torch.Tensor, shell: float = 1.0) -> torch.Tensor:
     return (q * scale).t()
 
 
+def _smoke(kernels: ModuleType) -> None:
+    """Runs the kernel on one float32 point, in the component-major layout sample points come in."""
+    kernels.contract(numpy.full((1, 3), 2.0, numpy.float32).T, 0.0, 0.0, 0.0, 1.0, 1.0, numpy.empty((3, 1), numpy.float32))
+
+
+def _kernels() -> ModuleType | None:
+    return fused.load("nerfmeta.render._contraction_numba", _smoke, "contraction kernel")
+
+
+def fused_contraction(x: torch.Tensor) -> bool:
+    """True when :meth:`InnerBox.contract` takes the points ``x`` (N, 3) through the fused kernel: float32 or float64
+    on a CPU, no gradient wanted, and the kernel available (numba, not switched off: :mod:`nerfmeta.fused`)."""
+    return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and x.ndim == 2 and x.shape[1] == 3
+            and not (x.requires_grad and torch.is_grad_enabled()) and fused.enabled() and _kernels() is not None)
+
+
 @dataclass(frozen=True)
 class InnerBox:
     """The cube kept at full resolution: ``centre`` (3,) world position and half-side ``radius``."""
@@ -63,7 +82,15 @@ class InnerBox:
         return (x - torch.tensor(self.centre, dtype=x.dtype, device=x.device)) / self.radius
 
     def contract(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3) world points -> (N, 3) contracted points in ``[-(1 + shell), 1 + shell]^3``."""
+        """(N, 3) world points -> (N, 3) contracted points in ``[-(1 + shell), 1 + shell]^3``, component-major.
+
+        On a CPU, where no gradient is taken, one fused pass (:mod:`nerfmeta.render._contraction_numba`; the same
+        values to float rounding, :func:`fused_contraction`), else :func:`contract` of :meth:`normalise`.
+        """
+        if fused_contraction(x):
+            out = torch.empty(3, x.shape[0], dtype=x.dtype)
+            _kernels().contract(x.detach().t().numpy(), *self.centre, self.radius, self.shell, out.numpy())
+            return out.t()
         return contract(self.normalise(x), self.shell)
 
     def aabb(self, dtype=torch.float32, device=None) -> torch.Tensor:
