@@ -135,3 +135,16 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
         monkeypatch.undo()
         load_kernels.cache_clear()
     assert fused_compositing() and volume._kernels() is not None
+
+
+def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypatch):
+    """``warm_up`` (called by ``run_fit`` before the clock) loads the compositor's and the contraction's kernels."""
+    from nerfmeta import fused
+    from nerfmeta.fields.registry import BACKBONES
+
+    for backbone, (_, cls, _) in BACKBONES.items():
+        asked = []
+        monkeypatch.setattr(fused, "load", lambda module, smoke, what: asked.append(module))
+        cls.warm_up()
+        monkeypatch.undo()
+        assert {"nerfmeta.render._volume_numba", "nerfmeta.render._contraction_numba"} <= set(asked), backbone

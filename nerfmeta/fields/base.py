@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from nerfmeta.data.scene import RayBatch
+from nerfmeta.render.contraction import fused_contraction_available
 from nerfmeta.render.estimators import PackedSamples
 from nerfmeta.render.volume import Composite, fused_compositing, render_packed
 
@@ -236,8 +237,11 @@ class RadianceModel(Field):
     def warm_up(cls) -> None:
         """Load or compile, once per process, what this backbone's steps use (e.g. compiled kernels), so that
         one-off cost lands before a fit's clock starts, as imports do, and not in the first step of whichever fit
-        runs first (default: the compositor's fused kernels, :func:`~nerfmeta.render.volume.fused_compositing`)."""
+        runs first (default: the fused kernels of the compositor and of the contracted space, which every backbone
+        renders with: :func:`~nerfmeta.render.volume.fused_compositing`,
+        :func:`~nerfmeta.render.contraction.fused_contraction_available`)."""
         fused_compositing()
+        fused_contraction_available()
 
     def recipe_notes(self) -> dict[str, Any]:
         """Config values worth quoting in a pretrained model's recipe line (default: none)."""

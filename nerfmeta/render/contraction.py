@@ -62,11 +62,17 @@ def _kernels() -> ModuleType | None:
     return fused.load("nerfmeta.render._contraction_numba", _smoke, "contraction kernel")
 
 
+def fused_contraction_available() -> bool:
+    """True when the contraction's kernel can be used (numba importable, the kernel compiled or loaded, which this
+    call does once per process, and not switched off: :mod:`nerfmeta.fused`)."""
+    return fused.enabled() and _kernels() is not None
+
+
 def fused_contraction(x: torch.Tensor) -> bool:
     """True when :meth:`InnerBox.contract` takes the points ``x`` (N, 3) through the fused kernel: float32 or float64
-    on a CPU, no gradient wanted, and the kernel available (numba, not switched off: :mod:`nerfmeta.fused`)."""
+    on a CPU, no gradient wanted, and the kernel available (:func:`fused_contraction_available`)."""
     return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and x.ndim == 2 and x.shape[1] == 3
-            and not (x.requires_grad and torch.is_grad_enabled()) and fused.enabled() and _kernels() is not None)
+            and not (x.requires_grad and torch.is_grad_enabled()) and fused_contraction_available())
 
 
 @dataclass(frozen=True)
