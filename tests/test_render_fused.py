@@ -148,3 +148,17 @@ def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypa
         cls.warm_up()
         monkeypatch.undo()
         assert {"nerfmeta.render._volume_numba", "nerfmeta.render._contraction_numba"} <= set(asked), backbone
+
+
+@needs_numba
+def test_the_weighted_sums_are_right_for_rays_in_any_order():
+    """The colour and depth sums add a run of one ray's samples at a time, so interleaved rays sum as index_add does."""
+    g = torch.Generator().manual_seed(6)
+    ray_idx = torch.tensor([2, 2, 0, 0, 0, 2, 1, 0])
+    weights, t = torch.rand(8, generator=g, dtype=torch.float64), torch.rand(8, generator=g, dtype=torch.float64)
+    colours = torch.rand(8, 3, generator=g, dtype=torch.float64)
+    sel = torch.tensor([0, 2, 3, 5, 7])
+    fast = volume._WeightedSums.apply(weights, colours[sel], sel, ray_idx, t, 4)
+    slow = volume._weighted_sums_torch(weights, colours[sel], sel, ray_idx, t, 4)
+    for a, b in zip(fast, slow):
+        torch.testing.assert_close(a, b, rtol=1e-14, atol=1e-14)

@@ -52,10 +52,10 @@ def weights_backward(em1, decay, ray, t_before, t_final, grad_w, grad_t, grad_ta
 
 @numba.njit(cache=True, nogil=True)
 def composite_forward(weights, colour, sel, ray, t, rgb, depth):  # pragma: no cover - compiled
-    """Sets ``rgb`` (n_rays, 3) to the weighted colours (K, 3) of the samples ``sel`` (K,) (empty: every sample,
-    K = M) and ``depth`` (n_rays,) to the weighted distances ``t`` (M,) of every sample, summed per ray in float64
-    (the caller fills both with 0 first, for rays without samples). A ray's samples are contiguous, so each sum runs
-    in registers and is written once."""
+    """Adds to ``rgb`` (n_rays, 3) the weighted colours (K, 3) of the samples ``sel`` (K,) (empty: every sample,
+    K = M) and to ``depth`` (n_rays,) the weighted distances ``t`` (M,) of every sample, summed per run of one ray's
+    samples in float64 registers and added once a run (so the sums are right for any order of ``ray``; packed
+    samples, a ray's samples contiguous, make one run a ray)."""
     n = weights.shape[0]
     i = 0
     while i < n:
@@ -63,7 +63,7 @@ def composite_forward(weights, colour, sel, ray, t, rgb, depth):  # pragma: no c
         while i < n and ray[i] == r:
             acc += weights[i] * t[i]
             i += 1
-        depth[r] = acc
+        depth[r] += acc
     every = sel.shape[0] == 0
     n = colour.shape[0]
     k = 0
@@ -79,7 +79,9 @@ def composite_forward(weights, colour, sel, ray, t, rgb, depth):  # pragma: no c
             green += w * colour[k, 1]
             blue += w * colour[k, 2]
             k += 1
-        rgb[r, 0], rgb[r, 1], rgb[r, 2] = red, green, blue
+        rgb[r, 0] += red
+        rgb[r, 1] += green
+        rgb[r, 2] += blue
 
 
 @numba.njit(cache=True, nogil=True)
