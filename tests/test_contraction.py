@@ -123,6 +123,8 @@ def test_the_fused_contraction_gives_pytorchs_values_and_layout(dtype):
     tol = {"rtol": 1e-12, "atol": 1e-12} if dtype == torch.float64 else {"rtol": 1e-6, "atol": 1e-6}
     torch.testing.assert_close(fast, slow, equal_nan=True, **tol)
     assert torch.isnan(fast[-3]).tolist() == torch.isnan(slow[-3]).tolist() == [True, False, False]
+    rows = p.contiguous()  # row-major points (a grid's) take the kernel too
+    torch.testing.assert_close(box.contract(rows), slow, equal_nan=True, **tol)
     leaf = points.detach().clone().requires_grad_()
     assert not fused_contraction(leaf) and box.contract(leaf).grad_fn is not None
     with torch.no_grad():

@@ -54,8 +54,10 @@ def contract(p: torch.Tensor, shell: float = 1.0) -> torch.Tensor:
 
 
 def _smoke(kernels: ModuleType) -> None:
-    """Runs the kernel on one float32 point, in the component-major layout sample points come in."""
-    kernels.contract(numpy.full((1, 3), 2.0, numpy.float32).T, 0.0, 0.0, 0.0, 1.0, 1.0, numpy.empty((3, 1), numpy.float32))
+    """Runs the kernel on two float32 points in both layouts points come in: component-major (sample points, whose
+    transpose is a C-contiguous (3, N)) and row-major (grid points), so neither compiles inside a fit."""
+    for x in (numpy.full((3, 2), 2.0, numpy.float32), numpy.full((2, 3), 2.0, numpy.float32).T):
+        kernels.contract(x, 0.0, 0.0, 0.0, 1.0, 1.0, numpy.empty((3, 2), numpy.float32))
 
 
 def _kernels() -> ModuleType | None:
