@@ -403,3 +403,4 @@ def test_large_gradient_buffers_are_recycled_only_once_no_tensor_holds_them(monk
     small = torch.randn(1, 2, 2, 2, dtype=torch.float64, requires_grad=True)  # 64 bytes: a fresh buffer each time
     (a,) = torch.autograd.grad(trilinear_coords(small, torch.full((3, 1), 0.5, dtype=torch.float64)).sum(), small)
     assert len(grid_kernels._SPARES) == 1
+    assert len(next(iter(grid_kernels._SPARES.values()))) == 2  # the third buffer, made while two were held, was not kept

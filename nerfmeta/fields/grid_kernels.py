@@ -192,6 +192,7 @@ place; the 16 MB density grid 13.0 against 11.5 (below 32 MiB glibc reuses its h
 compositing*)."""
 _SPARES: OrderedDict[tuple[tuple[int, ...], str], list[numpy.ndarray]] = OrderedDict()
 _SPARE_KEYS = 4  # the shapes kept: a fit's density and colour grids, and the pair before the last growth
+_SPARES_PER_SHAPE = 2  # more gradients of one shape alive at once (MAML's inner steps) get unpooled buffers
 _SPARES_LOCK = threading.Lock()
 
 
@@ -209,7 +210,9 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> numpy.ndarray:
 
     A buffer is free once no tensor made from it is alive (``torch.from_numpy`` holds a reference to the array, so
     its reference count says so), and is zeroed in place before it is handed out again: a gradient still held (by
-    a parameter's ``.grad``, a graph kept for a second derivative, a caller) is never reused.
+    a parameter's ``.grad``, a graph kept for a second derivative, a caller) is never reused. At most
+    :data:`_SPARES_PER_SHAPE` buffers a shape are kept (more alive at once, as in MAML's inner steps, get buffers of
+    their own), so the pool holds no more than a plain fit's gradients.
     """
     size = int(numpy.prod(shape)) * numpy.dtype(dtype).itemsize
     if size < RECYCLE_MIN_BYTES:
@@ -222,6 +225,8 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> numpy.ndarray:
             _SPARES.popitem(last=False)
         free = next((i for i in range(len(spares)) if _refs(spares, i) == _FREE_REFS), None)
         if free is None:
+            if len(spares) >= _SPARES_PER_SHAPE:
+                return numpy.zeros(shape, dtype=dtype)
             spares.append(numpy.zeros(shape, dtype=dtype))
             return spares[-1]
         spares[free].fill(0)
