@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from autograd_graph import count_nodes
+from broken_numba import kernel_that_cannot_compile
 
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.fields import grid_kernels
 from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
 from nerfmeta.fields.grid_ops import corners_from_coords, trilinear_gather
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
-from nerfmeta.fused import load as load_kernels
 
 needs_numba = pytest.mark.skipif(not fused_available(), reason="numba is not installed (the fused kernels are optional)")
 SIZE = (4, 5, 6)
@@ -315,21 +315,13 @@ def test_interp_points_equals_interp_gather_with_world_points_outside_the_box_cl
 def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monkeypatch):
     from nerfmeta.fields import _grid_numba
 
-    def broken(*_):
-        raise RuntimeError("no LLVM target")
-
-    monkeypatch.setattr(_grid_numba, "gather", broken)
-    load_kernels.cache_clear()
-    try:
+    with kernel_that_cannot_compile(monkeypatch, _grid_numba, "gather"):
         with pytest.warns(UserWarning, match="numba could not compile the grid lookups .*no LLVM target"):
             assert not fused_available()
         g = torch.Generator().manual_seed(10)
         grid = torch.randn(2, *SIZE, generator=g, dtype=torch.float64)
         x = _coords(20, g)
         torch.testing.assert_close(trilinear_coords(grid, x), _reference(grid, x), rtol=0, atol=1e-12)
-    finally:
-        monkeypatch.undo()
-        load_kernels.cache_clear()
     assert fused_available()
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nerfmeta.fused import fused_kernels, load as load_kernels
+from broken_numba import kernel_that_cannot_compile
+
+from nerfmeta.fused import fused_kernels
 from nerfmeta.render import volume
 from nerfmeta.render.volume import fused_compositing, packed_weights, render_packed
 
@@ -120,20 +122,12 @@ def test_a_batch_without_samples_and_renders_without_gradients():
 def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monkeypatch):
     from nerfmeta.render import _volume_numba
 
-    def broken(*_):
-        raise RuntimeError("no LLVM target")
-
-    monkeypatch.setattr(_volume_numba, "weights_forward", broken)
-    load_kernels.cache_clear()
-    try:
+    with kernel_that_cannot_compile(monkeypatch, _volume_numba, "weights_forward"):
         with pytest.warns(UserWarning, match="numba could not compile the compositing kernels .*no LLVM target"):
             assert not fused_compositing()
         tau, t, ray_idx, colours = _packed([3, 2], 3, torch.float64)
         w, _ = packed_weights(tau.requires_grad_(), ray_idx, 2)
         assert w.grad_fn.name() != "_PackedWeightsBackward"
-    finally:
-        monkeypatch.undo()
-        load_kernels.cache_clear()
     assert fused_compositing() and volume._kernels() is not None
 
 
