@@ -152,7 +152,8 @@ def test_the_weighted_sums_are_right_for_rays_in_any_order():
     weights, t = torch.rand(8, generator=g, dtype=torch.float64), torch.rand(8, generator=g, dtype=torch.float64)
     colours = torch.rand(8, 3, generator=g, dtype=torch.float64)
     sel = torch.tensor([0, 2, 3, 5, 7])
-    fast = volume._WeightedSums.apply(weights, colours[sel], sel, ray_idx, t, 4)
-    slow = volume._weighted_sums_torch(weights, colours[sel], sel, ray_idx, t, 4)
+    ray_c = ray_idx[sel]
+    fast = volume._WeightedSums.apply(weights, colours[sel], sel, ray_c, ray_idx, t, 4)
+    slow = volume._weighted_sums_torch(weights, colours[sel], sel, ray_c, ray_idx, t, 4)
     for a, b in zip(fast, slow):
         torch.testing.assert_close(a, b, rtol=1e-14, atol=1e-14)

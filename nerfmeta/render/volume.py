@@ -251,20 +251,22 @@ def render_packed(
             sel = None
     else:
         sel = None
-    colour = rgb_fn(sel, ray_idx if sel is None else ray_idx.index_select(0, sel))
+    ray_c = ray_idx if sel is None else ray_idx.index_select(0, sel)
+    colour = rgb_fn(sel, ray_c)
     if _fused_for(weights, ray_idx) and colour.dtype == weights.dtype and not t.requires_grad:
-        rgb, depth = _WeightedSums.apply(weights, colour, sel, ray_idx, t, n_rays)
+        rgb, depth = _WeightedSums.apply(weights, colour, sel, ray_c, ray_idx, t, n_rays)
     else:
-        rgb, depth = _weighted_sums_torch(weights, colour, sel, ray_idx, t, n_rays)
+        rgb, depth = _weighted_sums_torch(weights, colour, sel, ray_c, ray_idx, t, n_rays)
     return Composite(rgb=rgb + t_final[:, None] * background, acc=1.0 - t_final, depth=depth + t_final * far,
                      weights=weights)
 
 
-def _weighted_sums_torch(weights: torch.Tensor, colour: torch.Tensor, sel: torch.Tensor | None, ray_idx: torch.Tensor,
-                         t: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per ray, the weighted sum of the colours (K, 3) of the samples ``sel`` (None: all) and of the distances ``t``
-    (M,) of every sample: (n_rays, 3), (n_rays,). PyTorch's ops (differentiable to any order)."""
-    ray_c, w_c = (ray_idx, weights) if sel is None else (ray_idx.index_select(0, sel), weights.index_select(0, sel))
+def _weighted_sums_torch(weights: torch.Tensor, colour: torch.Tensor, sel: torch.Tensor | None, ray_c: torch.Tensor,
+                         ray_idx: torch.Tensor, t: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per ray, the weighted sum of the colours (K, 3) of the samples ``sel`` (None: all), whose rays are ``ray_c``
+    (K,), and of the distances ``t`` (M,) of every sample: (n_rays, 3), (n_rays,). PyTorch's ops (differentiable to
+    any order)."""
+    w_c = weights if sel is None else weights.index_select(0, sel)
     rgb = weights.new_zeros(n_rays, 3).index_add(0, ray_c, w_c[:, None] * colour)
     return rgb, weights.new_zeros(n_rays).index_add(0, ray_idx, weights * t)
 
@@ -338,28 +340,28 @@ class _WeightedSums(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, weights: torch.Tensor, colour: torch.Tensor, sel: torch.Tensor | None,  # type: ignore[override]
-                ray_idx: torch.Tensor, t: torch.Tensor, n_rays: int):
+                ray_c: torch.Tensor, ray_idx: torch.Tensor, t: torch.Tensor, n_rays: int):
         weights, t = weights.contiguous(), t.to(weights.dtype).contiguous()  # colour as it comes (numba takes strides)
         sel_np = _EVERY if sel is None else sel.contiguous().numpy()
         rgb, depth = weights.new_zeros(n_rays, 3), weights.new_zeros(n_rays)
         _kernels().composite_forward(weights.detach().numpy(), colour.detach().numpy(), sel_np, ray_idx.numpy(),
                                      t.numpy(), rgb.numpy(), depth.numpy())
-        ctx.save_for_backward(weights, colour, ray_idx, t)
+        ctx.save_for_backward(weights, colour, ray_c, ray_idx, t)
         ctx.sel, ctx.sel_np, ctx.n_rays = sel, sel_np, n_rays
         return rgb, depth
 
     @staticmethod
     def backward(ctx, grad_rgb: torch.Tensor | None, grad_depth: torch.Tensor | None):  # type: ignore[override]
-        weights, colour, ray_idx, t = ctx.saved_tensors
+        weights, colour, ray_c, ray_idx, t = ctx.saved_tensors
         grad_rgb = weights.new_zeros(ctx.n_rays, 3) if grad_rgb is None else grad_rgb.contiguous()
         grad_depth = weights.new_zeros(ctx.n_rays) if grad_depth is None else grad_depth.contiguous()
         if torch.is_grad_enabled():  # create_graph: a gradient that is itself differentiable
             with torch.enable_grad():
-                outputs = _weighted_sums_torch(weights, colour, ctx.sel, ray_idx, t, ctx.n_rays)
+                outputs = _weighted_sums_torch(weights, colour, ctx.sel, ray_c, ray_idx, t, ctx.n_rays)
             grads = torch.autograd.grad(outputs, (weights, colour), (grad_rgb, grad_depth), create_graph=True)
-            return grads[0], grads[1], None, None, None, None
+            return grads[0], grads[1], None, None, None, None, None
         grad_w, grad_colour = torch.empty_like(weights), torch.empty_like(colour)
         _kernels().composite_backward(weights.detach().numpy(), colour.detach().numpy(), ctx.sel_np, ray_idx.numpy(),
                                       t.numpy(), grad_rgb.detach().numpy(), grad_depth.detach().numpy(),
                                       grad_w.numpy(), grad_colour.numpy())
-        return grad_w, grad_colour, None, None, None, None
+        return grad_w, grad_colour, None, None, None, None, None
