@@ -20,7 +20,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import ModuleType
 
-__all__ = ["enabled", "fused_kernels", "load"]
+import torch
+
+__all__ = ["enabled", "fused_kernels", "load", "takes"]
 
 _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
 
@@ -28,6 +30,12 @@ _ENABLED = [os.environ.get("NERFMETA_FUSED_LOOKUPS", "1") != "0"]
 def enabled() -> bool:
     """True unless the fused kernels are switched off (the environment, or :func:`fused_kernels`)."""
     return _ENABLED[0]
+
+
+def takes(*tensors: torch.Tensor) -> bool:
+    """True when every one of ``tensors`` is on the CPU in float32 or float64, the dtypes the kernels are built for
+    (each family checks its own further conditions, and :func:`enabled`)."""
+    return all(t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) for t in tensors)
 
 
 @contextmanager

@@ -64,7 +64,6 @@ from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear
 __all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "last_level_cache_bytes", "short_openmp_wait",
            "trilinear_coords"]
 
-_NUMPY_DTYPE = {torch.float32: numpy.float32, torch.float64: numpy.float64}
 
 SPLIT_MIN_POINTS = 16384
 """Lookups of at least this many points are split over torch's threads (below, a thread hand-off costs more than it saves)."""
@@ -116,8 +115,7 @@ def fused_available() -> bool:
 def fused_for(grid: torch.Tensor, x: torch.Tensor) -> bool:
     """True when :func:`trilinear_coords` looks ``grid`` up at ``x`` with the fused kernels: they are available, and
     both tensors are on the CPU in the same float32 or float64 dtype."""
-    return (fused_available() and grid.device.type == "cpu" and x.device.type == "cpu" and grid.dtype == x.dtype
-            and grid.dtype in _NUMPY_DTYPE)
+    return fused.takes(grid, x) and grid.dtype == x.dtype and fused_available()
 
 
 fused_lookups = fused.fused_kernels
@@ -235,8 +233,8 @@ def _zeros(shape: tuple[int, ...], dtype: Any) -> numpy.ndarray:
 
 def _scatter(values: torch.Tensor, points: tuple[numpy.ndarray, numpy.ndarray], shape: tuple[int, ...]) -> torch.Tensor:
     order, xs = points
-    grad = _zeros(shape, _NUMPY_DTYPE[values.dtype])
     v, parts = values.detach().contiguous().numpy(), _parts(xs.shape[1])
+    grad = _zeros(shape, v.dtype)
     _split(_kernels().scatter, [(v, xs, grad, order, q, parts) for q in range(parts)])
     return torch.from_numpy(grad)
 

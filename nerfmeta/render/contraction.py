@@ -73,8 +73,8 @@ def fused_contraction_available() -> bool:
 def fused_contraction(x: torch.Tensor) -> bool:
     """True when :meth:`InnerBox.contract` takes the points ``x`` (N, 3) through the fused kernel: float32 or float64
     on a CPU, no gradient wanted, and the kernel available (:func:`fused_contraction_available`)."""
-    return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and x.ndim == 2 and x.shape[1] == 3
-            and not (x.requires_grad and torch.is_grad_enabled()) and fused_contraction_available())
+    return (fused.takes(x) and x.ndim == 2 and x.shape[1] == 3 and not (x.requires_grad and torch.is_grad_enabled())
+            and fused_contraction_available())
 
 
 @dataclass(frozen=True)

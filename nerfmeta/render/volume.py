@@ -273,7 +273,6 @@ def _weighted_sums_torch(weights: torch.Tensor, colour: torch.Tensor, sel: torch
 
 # ----- the fused CPU kernels of the compositor ------------------------------------------------------------------
 
-_NUMPY_DTYPES = (torch.float32, torch.float64)
 _EVERY = numpy.empty(0, dtype=numpy.int64)
 
 
@@ -302,8 +301,8 @@ def fused_compositing() -> bool:
 
 def _fused_for(values: torch.Tensor, ray_idx: torch.Tensor) -> bool:
     """True when the compositor's kernels take these CPU float32/float64 samples."""
-    return (values.device.type == "cpu" and ray_idx.device.type == "cpu" and values.dtype in _NUMPY_DTYPES
-            and ray_idx.dtype == torch.int64 and fused_compositing())
+    return (fused.takes(values) and ray_idx.device.type == "cpu" and ray_idx.dtype == torch.int64
+            and fused_compositing())
 
 
 class _PackedWeights(torch.autograd.Function):
