@@ -132,7 +132,8 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
 
 
 def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypatch):
-    """``warm_up`` (called by ``run_fit`` before the clock) loads the compositor's and the contraction's kernels."""
+    """``warm_up`` (called by ``run_fit`` before the clock) loads the compositor's, the contraction's and the march's
+    kernels."""
     from nerfmeta import fused
     from nerfmeta.fields.registry import BACKBONES
 
@@ -141,7 +142,8 @@ def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypa
         monkeypatch.setattr(fused, "load", lambda module, smoke, what: asked.append(module))
         cls.warm_up()
         monkeypatch.undo()
-        assert {"nerfmeta.render._volume_numba", "nerfmeta.render._contraction_numba"} <= set(asked), backbone
+        assert {"nerfmeta.render._volume_numba", "nerfmeta.render._contraction_numba",
+                "nerfmeta.render._march_numba"} <= set(asked), backbone
 
 
 @needs_numba

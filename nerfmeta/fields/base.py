@@ -32,7 +32,7 @@ from torch import nn
 
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.render.contraction import fused_contraction_available
-from nerfmeta.render.estimators import PackedSamples
+from nerfmeta.render.estimators import PackedSamples, fused_march_available
 from nerfmeta.render.volume import Composite, fused_compositing, render_packed
 
 
@@ -239,9 +239,11 @@ class RadianceModel(Field):
         one-off cost lands before a fit's clock starts, as imports do, and not in the first step of whichever fit
         runs first (default: the fused kernels of the compositor and of the contracted space, which every backbone
         renders with: :func:`~nerfmeta.render.volume.fused_compositing`,
-        :func:`~nerfmeta.render.contraction.fused_contraction_available`)."""
+        :func:`~nerfmeta.render.contraction.fused_contraction_available`,
+        :func:`~nerfmeta.render.estimators.fused_march_available`)."""
         fused_compositing()
         fused_contraction_available()
+        fused_march_available()
 
     def recipe_notes(self) -> dict[str, Any]:
         """Config values worth quoting in a pretrained model's recipe line (default: none)."""

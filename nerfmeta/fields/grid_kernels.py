@@ -45,13 +45,9 @@ a float64 reference).
 
 from __future__ import annotations
 
-import functools
-import os
 import sys
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -67,8 +63,6 @@ __all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "la
 
 SPLIT_MIN_POINTS = 16384
 """Lookups of at least this many points are split over torch's threads (below, a thread hand-off costs more than it saves)."""
-SHORT_SPINCOUNT = 100_000
-"""The largest ``GOMP_SPINCOUNT`` :func:`short_openmp_wait` counts as short (libgomp's default is 300,000)."""
 
 
 def last_level_cache_bytes(cpu_dir: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int:
@@ -122,42 +116,14 @@ fused_lookups = fused.fused_kernels
 """Switch the fused kernels on or off inside a block (tests compare both paths; :func:`nerfmeta.fused.fused_kernels`)."""
 
 
-def short_openmp_wait() -> bool:
-    """True when PyTorch's OpenMP workers were told to spin briefly (``GOMP_SPINCOUNT`` at most
-    :data:`SHORT_SPINCOUNT`, or ``OMP_WAIT_POLICY=passive``), as importing :mod:`nerfmeta` before torch does.
-
-    Otherwise a worker spins through most of a step on the core a lookup's second thread needs: split lookups then
-    measured no faster, and once 5x slower (BENCHMARKS.md, *Fused grid lookups*), so they stay on one thread.
-    """
-    if os.environ.get("OMP_WAIT_POLICY", "").strip().lower() == "passive":
-        return True
-    try:
-        return int(os.environ.get("GOMP_SPINCOUNT", "").strip()) <= SHORT_SPINCOUNT
-    except ValueError:  # unset, or libgomp's own forms ("10k", "infinite"): not known to be short
-        return False
-
-
 def _parts(n_points: int) -> int:
-    """How many concurrent calls a kernel over ``n_points`` is split into: torch's thread count (so ``--threads``
-    and the test renders' one-thread workers hold), 1 below :data:`SPLIT_MIN_POINTS` or without a short OpenMP wait
-    (:func:`short_openmp_wait`)."""
-    if n_points < SPLIT_MIN_POINTS or not short_openmp_wait():
-        return 1
-    return max(1, torch.get_num_threads())
+    """How many concurrent calls a kernel over ``n_points`` is split into (:func:`nerfmeta.fused.parts` with
+    :data:`SPLIT_MIN_POINTS`)."""
+    return fused.parts(n_points, SPLIT_MIN_POINTS)
 
 
-@functools.lru_cache(maxsize=None)
-def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
-    """One pool per size and process (a forked child cannot use its parent's threads: they are not there)."""
-    return ThreadPoolExecutor(workers, thread_name_prefix="nerfmeta-lookups")
-
-
-def _split(kernel: Callable[..., None], calls: list[tuple[Any, ...]]) -> None:
-    """Runs ``kernel(*args)`` for each of ``calls``, the last on this thread and the others at once beside it."""
-    futures = [_pool(len(calls) - 1, os.getpid()).submit(kernel, *args) for args in calls[:-1]]
-    kernel(*calls[-1])
-    for future in futures:
-        future.result()
+_split = fused.split
+short_openmp_wait = fused.short_openmp_wait
 
 
 def _ordered(grid_shape: tuple[int, ...], itemsize: int, x: torch.Tensor, by_block: bool = True,

@@ -1,0 +1,95 @@
+"""numba kernel of :func:`nerfmeta.render.estimators.contracted_march` with the occupancy grid's empty-space skip
+(imported only when numba is installed).
+
+PyTorch's march of a contracted space is a chain of whole-array passes over every sample (the marching distances,
+two edges and the sample mapped back to world distances, three contractions, the edge lengths, then the occupancy
+lookup's contraction, nearest corner and gather, and a selection): about 17 ms for the 430k samples of a beer
+training step on the 2-core CPU. Here each ray's samples are made one after another in registers, each bin's far
+edge contracted once and reused as the next bin's near edge, and only the kept samples are written. Runs on one
+thread over a range of rays and releases the GIL.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def from_march(m: float, t1: float, scale: float, tiny: float) -> float:
+    """:func:`nerfmeta.render.contraction.from_march` of one marching distance."""
+    if m > t1:
+        return t1 - scale + scale * scale / max(t1 + scale - m, tiny)
+    return m
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def contract(px: float, py: float, pz: float, cx: float, cy: float, cz: float, radius: float, shell: float):
+    """:meth:`nerfmeta.render.contraction.InnerBox.contract` of one world point (NaN coordinates: not scaled)."""
+    a, b, c = (px - cx) / radius, (py - cy) / radius, (pz - cz) / radius
+    m = max(abs(a), abs(b), abs(c))
+    if m > 1.0 and a == a and b == b and c == c:
+        s = (1.0 + shell - shell / m) / m
+        a, b, c = a * s, b * s, c * s
+    return a, b, c
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def nearest(v: float, top: int) -> int:
+    """Index of the corner nearest corner coordinate ``v`` on ``0 .. top``: clamped, halves to even (as
+    ``torch.round``), NaN to 0."""
+    if not v > 0.0:
+        return 0
+    if v > top:
+        return top
+    return int(numpy.rint(v))  # one rounding instruction (a floor-and-compare version took 2.5x the whole march)
+
+
+@numba.njit(cache=True, nogil=True)
+def march(origins, directions, t1, near_m, far_m, counts, window, starts, jitter, step: float, first: int,
+          scale: float, tiny: float, centre, radius: float, shell: float, occupied, lo, to_grid,
+          ray_idx, t, delta, r0: int, r1: int) -> int:  # pragma: no cover - compiled
+    """The samples ``first .. first + window[r] - 1`` of the rays ``r0 <= r < r1`` through the contracted space,
+    those whose nearest corner of ``occupied`` (X, Y, Z) bool is set (all when it has one corner), written to
+    ``ray_idx``, ``t``, ``delta`` from ``starts[r0]`` on, packed; returns how many (``starts`` (n_rays + 1,): where
+    each ray's window would start if every sample were kept, then the total).
+
+    Per ray: ``t1`` its inner-box exit, ``[near_m, far_m]`` its marching interval, ``counts`` its whole march's
+    sample count, ``jitter`` where its samples sit in their bins, as :func:`~nerfmeta.render.estimators.march_packed`
+    and :func:`~nerfmeta.render.estimators.contracted_march` make them (the last bin of a ray ends at ``far_m``).
+    ``centre`` (3,), ``radius``, ``shell``: the inner box; ``lo`` (3,) and ``to_grid`` (3,): contracted points to
+    corner coordinates of ``occupied``.
+    """
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    sx, sy, sz = occupied.shape
+    skip = sx * sy * sz > 1
+    q = starts[r0]
+    for r in range(r0, r1):
+        n = window[r]
+        if n <= 0:
+            continue
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
+        exit_, start, j = t1[r], near_m[r], jitter[r]
+        e = from_march(start + step * first, exit_, scale, tiny)
+        ax, ay, az = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
+        for k in range(first, first + n):
+            s0 = start + step * k
+            dm = step if k < counts[r] - 1 else max(far_m[r] - s0, 0.0)
+            # the far edge as the next bin's near edge is computed, so a window's first edge is the same number
+            e = from_march(start + step * (k + 1) if k < counts[r] - 1 else s0 + dm, exit_, scale, tiny)
+            bx, by, bz = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
+            d = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2)
+            ts = from_march(s0 + dm * j, exit_, scale, tiny)
+            keep = True
+            if skip:
+                px, py, pz = contract(ox + ts * dx, oy + ts * dy, oz + ts * dz, cx, cy, cz, radius, shell)
+                keep = occupied[nearest((px - lo[0]) * to_grid[0], sx - 1), nearest((py - lo[1]) * to_grid[1], sy - 1),
+                                nearest((pz - lo[2]) * to_grid[2], sz - 1)]
+            if keep:
+                ray_idx[q], t[q], delta[q] = r, ts, d
+                q += 1
+            ax, ay, az = bx, by, bz
+    return q - starts[r0]
