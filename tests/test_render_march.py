@@ -1,4 +1,5 @@
-"""The fused march of a contracted space (numba) against PyTorch's: the same samples, skips, windows and threads."""
+"""The fused marches (numba) against PyTorch's, through a contracted space and through a box: the same samples, skips,
+windows and threads."""
 
 import pytest
 import torch
@@ -8,7 +9,8 @@ from broken_numba import kernel_that_cannot_compile
 from nerfmeta.fused import fused_kernels
 from nerfmeta.render import estimators
 from nerfmeta.render.contraction import InnerBox
-from nerfmeta.render.estimators import OccupancyGrid, contracted_march, contracted_march_fused, fused_march_available
+from nerfmeta.render.estimators import (OccupancyGrid, contracted_march, contracted_march_fused, fused_march_available,
+                                        march_fused, march_packed)
 
 needs_numba = pytest.mark.skipif(not fused_march_available(), reason="numba is not installed (the fused kernels are optional)")
 
@@ -132,3 +134,79 @@ def test_a_numba_that_cannot_compile_means_pytorchs_march_with_a_warning(monkeyp
     assert torch.equal(got.ray_idx, expected.ray_idx) and torch.equal(got.far, expected.far)
     torch.testing.assert_close(got.t, expected.t, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(got.delta, expected.delta, rtol=1e-6, atol=1e-6)
+
+
+def _box_grid(seed: int = 2) -> OccupancyGrid:
+    g = torch.Generator().manual_seed(seed)
+    return OccupancyGrid(torch.tensor([[-1.0, -0.8, -1.2], [1.1, 0.9, 1.0]]), torch.rand(17, 13, 19, generator=g) < 0.5)
+
+
+def _box_rays(n: int, dtype: torch.dtype, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Rays from a shell of cameras around the box towards points in it, and a few that miss it."""
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1) * 3.0
+    directions = torch.nn.functional.normalize(torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5 - origins / 3, dim=-1)
+    directions[:3] = -directions[:3]  # away from the box: no samples
+    jitter = torch.rand(n, generator=g, dtype=torch.float64)
+    return origins.to(dtype), directions.to(dtype), torch.zeros(n, dtype=dtype), torch.full((n,), 8.0, dtype=dtype), jitter.to(dtype)
+
+
+def _box_both(grid: OccupancyGrid, rays, skip: bool = True, step: float = 0.01) -> tuple[estimators.PackedSamples, ...]:
+    o, d, near, far, jitter = rays
+    out = [grid.sampling(o, d, near, far, step=step, jitter=jitter, skip_empty=skip)]
+    with fused_kernels(False):
+        out.append(grid.sampling(o, d, near, far, step=step, jitter=jitter, skip_empty=skip))
+    return tuple(out)
+
+
+@needs_numba
+@pytest.mark.parametrize("skip", [True, False])
+def test_the_fused_march_through_a_box_keeps_pytorchs_samples_in_float64(skip):
+    grid = _box_grid()
+    fast, slow = _box_both(grid, _box_rays(300, torch.float64), skip=skip)
+    assert len(fast) > 10000 and torch.equal(fast.ray_idx, slow.ray_idx) and torch.equal(fast.far, slow.far)
+    torch.testing.assert_close(fast.t, slow.t, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(fast.delta, slow.delta, rtol=1e-9, atol=1e-12)
+    if skip:
+        everything = _box_both(grid, _box_rays(300, torch.float64), skip=False)[0]
+        assert len(fast) < 0.7 * len(everything)
+
+
+@needs_numba
+def test_the_fused_march_through_a_box_in_float32_is_pytorchs_to_rounding():
+    grid = _box_grid()
+    rays32 = _box_rays(300, torch.float32, seed=1)
+    fast, slow = _box_both(grid, rays32, skip=False)
+    assert torch.equal(fast.ray_idx, slow.ray_idx)
+    torch.testing.assert_close(fast.t, slow.t, rtol=2e-6, atol=2e-6)
+    torch.testing.assert_close(fast.delta, slow.delta, rtol=2e-5, atol=2e-6)
+    kept = _box_both(grid, rays32)  # a sample on a corner's rounding boundary may go either way: a handful at most
+    assert abs(len(kept[0]) - len(kept[1])) <= 3
+
+
+@needs_numba
+@pytest.mark.parametrize(("first", "limit"), [(0, 7), (5, 11), (150, None)])
+def test_a_window_of_the_march_through_a_box_is_the_same_window(first, limit):
+    o, d, near, far, jitter = _box_rays(50, torch.float64, seed=3)
+    near, far = near + 1.0, far - 3.0
+    fast = march_fused(o, d, near, far, 0.01, jitter, first, limit)
+    ray_idx, t, delta = march_packed(near, far, 0.01, jitter, first, limit)
+    assert torch.equal(fast.ray_idx, ray_idx)
+    torch.testing.assert_close(fast.t, t, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(fast.delta, delta, rtol=1e-9, atol=1e-12)
+
+
+@needs_numba
+def test_split_over_threads_the_march_through_a_box_is_the_one_thread_march_bit_for_bit(monkeypatch):
+    grid = _box_grid()
+    o, d, near, far, jitter = _box_rays(200, torch.float32, seed=4)
+    one = grid.sampling(o, d, near, far, step=0.01, jitter=jitter)
+    monkeypatch.setenv("GOMP_SPINCOUNT", "10000")
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(estimators, "MARCH_SPLIT_MIN_SAMPLES", 1)
+    calls = []
+    real = estimators.fused.split
+    monkeypatch.setattr(estimators.fused, "split", lambda kernel, args: (calls.append(len(args)), real(kernel, args))[1])
+    split = grid.sampling(o, d, near, far, step=0.01, jitter=jitter)
+    assert calls == [2] and len(split) > 1000
+    assert all(torch.equal(getattr(split, k), getattr(one, k)) for k in ("ray_idx", "t", "delta", "far"))

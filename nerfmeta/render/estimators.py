@@ -9,10 +9,10 @@ transmittance below ``early_stop_eps``). Its marks come from the field's own den
 (:meth:`OccupancyGrid.prune`, marks only leave) or refreshed (:meth:`OccupancyGrid.refresh`,
 marks follow the field) on the model's schedule.
 
-On a CPU a contracted space is marched by one compiled kernel (numba, :func:`contracted_march_fused`): each ray's
-samples made one after another, each bin's far edge contracted once and reused as the next bin's near edge, the
-occupancy looked up at the sample's contracted position, and only the kept samples written, the rays split over
-torch's threads. The same samples to float rounding (the kernel works in float64 inside, so it is closer to a
+On a CPU the march is one compiled kernel (numba; :func:`contracted_march_fused` for a contracted space,
+:func:`march_fused` for a box): each ray's samples made one after another (in a contracted space each bin's far edge
+contracted once and reused as the next bin's near edge), the occupancy looked up at the sample's position, and only the
+kept samples written, the rays split over torch's threads. The same samples to float rounding (the kernel works in float64 inside, so it is closer to a
 float64 march than PyTorch's float32 ops are). A beer training step's march, 430k samples: about 8 ms against 17-24
 on the 2-core CPU (BENCHMARKS.md, *Fused march*).
 
@@ -198,13 +198,16 @@ MARCH_SPLIT_MIN_SAMPLES = 65536
 
 
 def _smoke(kernels: ModuleType) -> None:
-    """Marches one float32 ray of two samples, with and without an occupancy grid (:func:`nerfmeta.fused.load`)."""
-    one, two = numpy.ones(1, numpy.float32), numpy.full(1, 2, numpy.int64)
+    """Marches one float32 ray of two samples through a contracted space and through a box, with and without an
+    occupancy grid (:func:`nerfmeta.fused.load`)."""
+    one, two, starts = numpy.ones(1, numpy.float32), numpy.full(1, 2, numpy.int64), numpy.array([0, 2], numpy.int64)
+    rays = numpy.zeros((1, 3), numpy.float32), numpy.ones((1, 3), numpy.float32)
     out = numpy.empty(2, numpy.int64), numpy.empty(2, numpy.float32), numpy.empty(2, numpy.float32)
     for occupied in (numpy.ones((1, 1, 1), numpy.bool_), numpy.ones((2, 2, 2), numpy.bool_)):
-        kernels.march(numpy.zeros((1, 3), numpy.float32), numpy.ones((1, 3), numpy.float32), one, one * 0, one, two, two,
-                      numpy.array([0, 2], numpy.int64), one * 0.5, 0.5, 0, 1.0, 1e-38, numpy.zeros(3), 1.0, 1.0, occupied,
-                      numpy.zeros(3), numpy.ones(3), *out, 0, 1)
+        grid = occupied, numpy.zeros(3), numpy.ones(3)
+        kernels.march(two, two, starts, *rays, one, one * 0, one, one * 0.5, 0.5, 0, 1.0, 1e-38, numpy.zeros(3), 1.0, 1.0,
+                      *grid, *out, 0, 1)
+        kernels.march_box(two, two, starts, *rays, one * 0, one, one * 0.5, 0.5, 0, *grid, *out, 0, 1)
 
 
 def _kernels() -> ModuleType | None:
@@ -218,9 +221,39 @@ def fused_march_available() -> bool:
 
 
 def fused_march(origins: torch.Tensor) -> bool:
-    """True when :meth:`OccupancyGrid.march` marches a contracted space with one fused kernel
-    (:func:`contracted_march_fused`): rays on a CPU in float32 or float64 and the kernel available."""
+    """True when :meth:`OccupancyGrid.march` marches with one fused kernel (:func:`contracted_march_fused`,
+    :func:`march_fused`): rays on a CPU in float32 or float64 and the kernels available."""
     return fused.takes(origins) and fused_march_available()
+
+
+def _occupancy_args(occupied: torch.Tensor | None, aabb: torch.Tensor | None) -> tuple[numpy.ndarray, ...]:
+    """The kernels' occupancy arguments: the marks, and the corner coordinates' origin and scale (float64); a single
+    set corner when there is no grid (nothing skipped)."""
+    if occupied is None or aabb is None:
+        return numpy.ones((1, 1, 1), numpy.bool_), numpy.zeros(3), numpy.ones(3)
+    lo = aabb[0].double()
+    to_grid = torch.tensor([n - 1 for n in occupied.shape], dtype=torch.float64) / (aabb[1].double() - lo)
+    return occupied.contiguous().numpy(), lo.numpy(), to_grid.numpy()
+
+
+def _march_split(kernel: Callable[..., int], args: tuple, counts: torch.Tensor, first: int, limit: int | None,
+                 dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Runs a march ``kernel`` over the windows ``first .. first + limit - 1`` of rays of ``counts`` samples, its rays
+    split where the samples are shared out evenly over torch's threads, each part writing its kept samples packed
+    from the offset of its first ray: ``ray_idx``, ``t``, ``delta`` of the kept samples, packed."""
+    window = (counts - first).clamp_(min=0)
+    if limit is not None:
+        window = window.clamp_(max=limit)
+    starts = torch.cat([window.new_zeros(1), torch.cumsum(window, 0)])  # (n_rays + 1,): each ray's first sample, the total
+    total = int(starts[-1])
+    ray_idx, t, delta = torch.empty(total, dtype=torch.long), torch.empty(total, dtype=dtype), torch.empty(total, dtype=dtype)
+    common = (counts.numpy(), window.numpy(), starts.numpy(), *args, ray_idx.numpy(), t.numpy(), delta.numpy())
+    n_parts = fused.parts(total, MARCH_SPLIT_MIN_SAMPLES)
+    cuts = [0, *torch.searchsorted(starts[:-1], torch.arange(1, n_parts) * total // n_parts).tolist(), len(counts)]
+    kept = fused.split(kernel, [(*common, cuts[p], cuts[p + 1]) for p in range(n_parts)])
+    pieces = [slice(int(starts[cuts[p]]), int(starts[cuts[p]]) + kept[p]) for p in range(n_parts)]
+    return tuple(torch.cat([a[piece] for piece in pieces]) if n_parts > 1 else a[pieces[0]]  # type: ignore[return-value]
+                 for a in (ray_idx, t, delta))
 
 
 def contracted_march_fused(origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, box: InnerBox,
@@ -231,31 +264,24 @@ def contracted_march_fused(origins: torch.Tensor, directions: torch.Tensor, near
     kept); rays on a CPU (:func:`fused_march`)."""
     t1, near_m, far_m = contracted_interval(origins, directions, near, box)
     scale, step_m = box.shell * box.radius, step * box.radius
-    counts = march_counts(near_m, far_m, step_m)
-    window = (counts - first).clamp_(min=0)
-    if limit is not None:
-        window = window.clamp_(max=limit)
-    starts = torch.cat([window.new_zeros(1), torch.cumsum(window, 0)])  # (n_rays + 1,): each ray's first sample, the total
-    total = int(starts[-1])
-    ray_idx = torch.empty(total, dtype=torch.long)
-    t, delta = origins.new_empty(total), origins.new_empty(total)
-    if occupied is None or aabb is None:
-        occupied, lo, to_grid = torch.ones(1, 1, 1, dtype=torch.bool), torch.zeros(3, dtype=torch.float64), torch.ones(3, dtype=torch.float64)
-    else:
-        lo = aabb[0].double()
-        to_grid = torch.tensor([n - 1 for n in occupied.shape], dtype=torch.float64) / (aabb[1].double() - lo)
+    marks, lo, to_grid = _occupancy_args(occupied, aabb)
     args = (origins.contiguous().numpy(), directions.contiguous().numpy(), t1.numpy(), near_m.numpy(), far_m.numpy(),
-            counts.numpy(), window.numpy(), starts.numpy(), jitter.contiguous().numpy(), step_m, first, scale,
-            torch.finfo(origins.dtype).tiny, numpy.asarray(box.centre, numpy.float64), box.radius, box.shell,
-            occupied.contiguous().numpy(), lo.numpy(), to_grid.numpy(), ray_idx.numpy(), t.numpy(), delta.numpy())
-    n_parts = fused.parts(total, MARCH_SPLIT_MIN_SAMPLES)
-    # the rays split where the samples are shared out evenly; each part writes its kept samples packed from the
-    # offset of its first ray
-    cuts = [0, *torch.searchsorted(starts[:-1], torch.arange(1, n_parts) * total // n_parts).tolist(), origins.shape[0]]
-    kept = fused.split(_kernels().march, [(*args, cuts[p], cuts[p + 1]) for p in range(n_parts)])
-    pieces = [slice(int(starts[cuts[p]]), int(starts[cuts[p]]) + kept[p]) for p in range(n_parts)]
-    columns = [torch.cat([a[piece] for piece in pieces]) if n_parts > 1 else a[pieces[0]] for a in (ray_idx, t, delta)]
+            jitter.contiguous().numpy(), step_m, first, scale, torch.finfo(origins.dtype).tiny,
+            numpy.asarray(box.centre, numpy.float64), box.radius, box.shell, marks, lo, to_grid)
+    columns = _march_split(_kernels().march, args, march_counts(near_m, far_m, step_m), first, limit, origins.dtype)
     return PackedSamples(*columns, from_march(far_m, t1, scale))
+
+
+def march_fused(origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, far: torch.Tensor, step: float,
+                jitter: torch.Tensor, first: int = 0, limit: int | None = None, occupied: torch.Tensor | None = None,
+                aabb: torch.Tensor | None = None) -> PackedSamples:
+    """:func:`march_packed`'s samples from one compiled pass (the same to float rounding), less those whose nearest
+    corner of ``occupied`` (X, Y, Z) bool over the box ``aabb`` (2, 3) is not set (None: all kept); rays on a CPU
+    (:func:`fused_march`), ``near``/``far`` already clipped to the box."""
+    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.contiguous().numpy(),
+            far.contiguous().numpy(), jitter.contiguous().numpy(), step, first, *_occupancy_args(occupied, aabb))
+    return PackedSamples(*_march_split(_kernels().march_box, args, march_counts(near, far, step), first, limit,
+                                       origins.dtype), far)
 
 
 def early_termination_keep(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int, eps: float) -> torch.Tensor:
@@ -373,10 +399,12 @@ class OccupancyGrid(nn.Module):
     def march(self, origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor, far: torch.Tensor, step: float,
               jitter: torch.Tensor, skip_empty: bool, first: int = 0, limit: int | None = None) -> PackedSamples:
         """The samples ``first .. first + limit - 1`` of each ray (``near``/``far`` already clipped), empty ones skipped."""
-        if self.box is not None and fused_march(origins):
+        if fused_march(origins):
             skip = skip_empty and self.skips
-            return contracted_march_fused(origins, directions, near, self.box, step, jitter, first, limit,
-                                          self.binaries if skip else None, self.aabb if skip else None)
+            marks, aabb = (self.binaries, self.aabb) if skip else (None, None)
+            if self.box is not None:
+                return contracted_march_fused(origins, directions, near, self.box, step, jitter, first, limit, marks, aabb)
+            return march_fused(origins, directions, near, far, step, jitter, first, limit, marks, aabb)
         if self.box is not None:
             samples = contracted_march(origins, directions, near, self.box, step, jitter, first, limit)
         else:
