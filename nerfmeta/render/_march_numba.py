@@ -1,4 +1,4 @@
-"""numba kernels of the occupancy grid's march with its empty-space skip, through a contracted space
+"""numba kernel of the occupancy grid's march with its empty-space skip, through a contracted space
 (:func:`nerfmeta.render.estimators.contracted_march`) and through a box (:func:`~nerfmeta.render.estimators.march_packed`)
 (imported only when numba is installed).
 
@@ -7,7 +7,7 @@ two edges and the sample mapped back to world distances, three contractions, the
 lookup's contraction, nearest corner and gather, and a selection): about 17 ms for the 430k samples of a beer
 training step on the 2-core CPU. Here each ray's samples are made one after another in registers, each bin's far
 edge contracted once and reused as the next bin's near edge, and only the kept samples are written. A box's march is
-the same without the contraction. Each runs on one thread over a range of rays and releases the GIL.
+the same kernel without the contraction. It runs on one thread over a range of rays and releases the GIL.
 """
 
 from __future__ import annotations
@@ -49,60 +49,26 @@ def nearest(v: float, top: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def march(counts, window, starts, origins, directions, t1, near_m, far_m, jitter, step: float, first: int,
+def march(counts, window, starts, origins, directions, near, far, t1, jitter, step: float, first: int,
           scale: float, tiny: float, centre, radius: float, shell: float, occupied, lo, to_grid,
           ray_idx, t, delta, r0: int, r1: int) -> int:  # pragma: no cover - compiled
-    """The samples ``first .. first + window[r] - 1`` of the rays ``r0 <= r < r1`` through the contracted space,
-    those whose nearest corner of ``occupied`` (X, Y, Z) bool is set (all when it has one corner), written to
-    ``ray_idx``, ``t``, ``delta`` from ``starts[r0]`` on, packed; returns how many (``starts`` (n_rays + 1,): where
-    each ray's window would start if every sample were kept, then the total).
+    """The samples ``first .. first + window[r] - 1`` of the rays ``r0 <= r < r1``, those whose nearest corner of
+    ``occupied`` (X, Y, Z) bool is set (all when it has one corner), written to ``ray_idx``, ``t``, ``delta`` from
+    ``starts[r0]`` on, packed; returns how many (``starts`` (n_rays + 1,): where each ray's window would start if every
+    sample were kept, then the total).
 
-    Per ray: ``t1`` its inner-box exit, ``[near_m, far_m]`` its marching interval, ``counts`` its whole march's
-    sample count, ``jitter`` where its samples sit in their bins, as :func:`~nerfmeta.render.estimators.march_packed`
-    and :func:`~nerfmeta.render.estimators.contracted_march` make them (the last bin of a ray ends at ``far_m``).
-    ``centre`` (3,), ``radius``, ``shell``: the inner box; ``lo`` (3,) and ``to_grid`` (3,): contracted points to
-    corner coordinates of ``occupied``.
+    Per ray: ``[near, far]`` its marching interval, ``counts`` its whole march's sample count, ``jitter`` where its
+    samples sit in their bins, as :func:`~nerfmeta.render.estimators.march_packed` makes them (the last bin ends at
+    ``far``); ``lo`` (3,) and ``to_grid`` (3,) map a sample's position to corner coordinates of ``occupied``.
+
+    Through a contracted space (``radius > 0``; :func:`~nerfmeta.render.estimators.contracted_march`): the interval
+    is in marching distance, ``t1`` each ray's inner-box exit and ``scale`` the shell's marching length; a sample's
+    ``t`` is its world distance, its ``delta`` its bin's length in the contracted space and its position for the
+    occupancy its contracted one (inner box of ``centre`` (3,), ``radius``, ``shell``). Through a box (``radius``
+    0; ``t1``, ``scale``, ``centre`` and ``shell`` unused): ``t`` and ``delta`` are world distance and bin length.
     """
     cx, cy, cz = centre[0], centre[1], centre[2]
-    sx, sy, sz = occupied.shape
-    skip = sx * sy * sz > 1
-    q = starts[r0]
-    for r in range(r0, r1):
-        n = window[r]
-        if n <= 0:
-            continue
-        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
-        dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
-        exit_, start, j = t1[r], near_m[r], jitter[r]
-        e = from_march(start + step * first, exit_, scale, tiny)
-        ax, ay, az = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
-        for k in range(first, first + n):
-            s0 = start + step * k
-            dm = step if k < counts[r] - 1 else max(far_m[r] - s0, 0.0)
-            # the far edge as the next bin's near edge is computed, so a window's first edge is the same number
-            e = from_march(start + step * (k + 1) if k < counts[r] - 1 else s0 + dm, exit_, scale, tiny)
-            bx, by, bz = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
-            d = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2)
-            ts = from_march(s0 + dm * j, exit_, scale, tiny)
-            keep = True
-            if skip:
-                px, py, pz = contract(ox + ts * dx, oy + ts * dy, oz + ts * dz, cx, cy, cz, radius, shell)
-                keep = occupied[nearest((px - lo[0]) * to_grid[0], sx - 1), nearest((py - lo[1]) * to_grid[1], sy - 1),
-                                nearest((pz - lo[2]) * to_grid[2], sz - 1)]
-            if keep:
-                ray_idx[q], t[q], delta[q] = r, ts, d
-                q += 1
-            ax, ay, az = bx, by, bz
-    return q - starts[r0]
-
-
-@numba.njit(cache=True, nogil=True)
-def march_box(counts, window, starts, origins, directions, near, far, jitter, step: float, first: int, occupied, lo,
-              to_grid, ray_idx, t, delta, r0: int, r1: int) -> int:  # pragma: no cover - compiled
-    """:func:`march` for a bounded box: the samples every ``step`` from ``near`` to ``far`` (the last bin ends at
-    ``far``) as :func:`~nerfmeta.render.estimators.march_packed` makes them, kept where the nearest corner of
-    ``occupied`` to ``o + t d`` is set (all when it has one corner); ``lo``, ``to_grid``: world points to its corner
-    coordinates."""
+    contracted = radius > 0.0
     sx, sy, sz = occupied.shape
     skip = sx * sy * sz > 1
     q = starts[r0]
@@ -113,16 +79,31 @@ def march_box(counts, window, starts, origins, directions, near, far, jitter, st
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
         start, j = near[r], jitter[r]
+        exit_, ax, ay, az = 0.0, 0.0, 0.0, 0.0
+        if contracted:  # the near edge of the window's first bin
+            exit_ = t1[r]
+            e = from_march(start + step * first, exit_, scale, tiny)
+            ax, ay, az = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
         for k in range(first, first + n):
             s0 = start + step * k
             dm = step if k < counts[r] - 1 else max(far[r] - s0, 0.0)
-            ts = s0 + dm * j
+            if contracted:
+                # the far edge as the next bin's near edge is computed, so a window's first edge is the same number
+                e = from_march(start + step * (k + 1) if k < counts[r] - 1 else s0 + dm, exit_, scale, tiny)
+                bx, by, bz = contract(ox + e * dx, oy + e * dy, oz + e * dz, cx, cy, cz, radius, shell)
+                d = math.sqrt((bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2)
+                ax, ay, az = bx, by, bz
+                ts = from_march(s0 + dm * j, exit_, scale, tiny)
+            else:
+                d, ts = dm, s0 + dm * j
             keep = True
             if skip:
-                keep = occupied[nearest((ox + ts * dx - lo[0]) * to_grid[0], sx - 1),
-                                nearest((oy + ts * dy - lo[1]) * to_grid[1], sy - 1),
-                                nearest((oz + ts * dz - lo[2]) * to_grid[2], sz - 1)]
+                px, py, pz = ox + ts * dx, oy + ts * dy, oz + ts * dz
+                if contracted:
+                    px, py, pz = contract(px, py, pz, cx, cy, cz, radius, shell)
+                keep = occupied[nearest((px - lo[0]) * to_grid[0], sx - 1), nearest((py - lo[1]) * to_grid[1], sy - 1),
+                                nearest((pz - lo[2]) * to_grid[2], sz - 1)]
             if keep:
-                ray_idx[q], t[q], delta[q] = r, ts, dm
+                ray_idx[q], t[q], delta[q] = r, ts, d
                 q += 1
     return q - starts[r0]

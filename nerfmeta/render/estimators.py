@@ -198,16 +198,15 @@ MARCH_SPLIT_MIN_SAMPLES = 65536
 
 
 def _smoke(kernels: ModuleType) -> None:
-    """Marches one float32 ray of two samples through a contracted space and through a box, with and without an
-    occupancy grid (:func:`nerfmeta.fused.load`)."""
+    """Marches one float32 ray of two samples through a contracted space and through a box (radius 0), with and
+    without an occupancy grid (:func:`nerfmeta.fused.load`)."""
     one, two, starts = numpy.ones(1, numpy.float32), numpy.full(1, 2, numpy.int64), numpy.array([0, 2], numpy.int64)
-    rays = numpy.zeros((1, 3), numpy.float32), numpy.ones((1, 3), numpy.float32)
+    rays = numpy.zeros((1, 3), numpy.float32), numpy.ones((1, 3), numpy.float32), one * 0, one, one
     out = numpy.empty(2, numpy.int64), numpy.empty(2, numpy.float32), numpy.empty(2, numpy.float32)
     for occupied in (numpy.ones((1, 1, 1), numpy.bool_), numpy.ones((2, 2, 2), numpy.bool_)):
-        grid = occupied, numpy.zeros(3), numpy.ones(3)
-        kernels.march(two, two, starts, *rays, one, one * 0, one, one * 0.5, 0.5, 0, 1.0, 1e-38, numpy.zeros(3), 1.0, 1.0,
-                      *grid, *out, 0, 1)
-        kernels.march_box(two, two, starts, *rays, one * 0, one, one * 0.5, 0.5, 0, *grid, *out, 0, 1)
+        for radius in (1.0, 0.0):
+            kernels.march(two, two, starts, *rays, one * 0.5, 0.5, 0, 1.0, 1e-38, numpy.zeros(3), radius, 1.0, occupied,
+                          numpy.zeros(3), numpy.ones(3), *out, 0, 1)
 
 
 def _kernels() -> ModuleType | None:
@@ -236,9 +235,9 @@ def _occupancy_args(occupied: torch.Tensor | None, aabb: torch.Tensor | None) ->
     return occupied.contiguous().numpy(), lo.numpy(), to_grid.numpy()
 
 
-def _march_split(kernel: Callable[..., int], args: tuple, counts: torch.Tensor, first: int, limit: int | None,
+def _march_split(args: tuple, counts: torch.Tensor, first: int, limit: int | None,
                  dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Runs a march ``kernel`` over the windows ``first .. first + limit - 1`` of rays of ``counts`` samples, its rays
+    """Runs the march's kernel (:func:`nerfmeta.render._march_numba.march`, given ``args`` after its first three) over the windows ``first .. first + limit - 1`` of rays of ``counts`` samples, its rays
     split where the samples are shared out evenly over torch's threads, each part writing its kept samples packed
     from the offset of its first ray: ``ray_idx``, ``t``, ``delta`` of the kept samples, packed."""
     window = (counts - first).clamp_(min=0)
@@ -250,7 +249,7 @@ def _march_split(kernel: Callable[..., int], args: tuple, counts: torch.Tensor, 
     common = (counts.numpy(), window.numpy(), starts.numpy(), *args, ray_idx.numpy(), t.numpy(), delta.numpy())
     n_parts = fused.parts(total, MARCH_SPLIT_MIN_SAMPLES)
     cuts = [0, *torch.searchsorted(starts[:-1], torch.arange(1, n_parts) * total // n_parts).tolist(), len(counts)]
-    kept = fused.split(kernel, [(*common, cuts[p], cuts[p + 1]) for p in range(n_parts)])
+    kept = fused.split(_kernels().march, [(*common, cuts[p], cuts[p + 1]) for p in range(n_parts)])
     pieces = [slice(int(starts[cuts[p]]), int(starts[cuts[p]]) + kept[p]) for p in range(n_parts)]
     return tuple(torch.cat([a[piece] for piece in pieces]) if n_parts > 1 else a[pieces[0]]  # type: ignore[return-value]
                  for a in (ray_idx, t, delta))
@@ -265,10 +264,10 @@ def contracted_march_fused(origins: torch.Tensor, directions: torch.Tensor, near
     t1, near_m, far_m = contracted_interval(origins, directions, near, box)
     scale, step_m = box.shell * box.radius, step * box.radius
     marks, lo, to_grid = _occupancy_args(occupied, aabb)
-    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), t1.numpy(), near_m.numpy(), far_m.numpy(),
+    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near_m.numpy(), far_m.numpy(), t1.numpy(),
             jitter.contiguous().numpy(), step_m, first, scale, torch.finfo(origins.dtype).tiny,
             numpy.asarray(box.centre, numpy.float64), box.radius, box.shell, marks, lo, to_grid)
-    columns = _march_split(_kernels().march, args, march_counts(near_m, far_m, step_m), first, limit, origins.dtype)
+    columns = _march_split(args, march_counts(near_m, far_m, step_m), first, limit, origins.dtype)
     return PackedSamples(*columns, from_march(far_m, t1, scale))
 
 
@@ -278,10 +277,10 @@ def march_fused(origins: torch.Tensor, directions: torch.Tensor, near: torch.Ten
     """:func:`march_packed`'s samples from one compiled pass (the same to float rounding), less those whose nearest
     corner of ``occupied`` (X, Y, Z) bool over the box ``aabb`` (2, 3) is not set (None: all kept); rays on a CPU
     (:func:`fused_march`), ``near``/``far`` already clipped to the box."""
-    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.contiguous().numpy(),
-            far.contiguous().numpy(), jitter.contiguous().numpy(), step, first, *_occupancy_args(occupied, aabb))
-    return PackedSamples(*_march_split(_kernels().march_box, args, march_counts(near, far, step), first, limit,
-                                       origins.dtype), far)
+    near, far = near.contiguous(), far.contiguous()
+    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.numpy(), far.numpy(), far.numpy(),
+            jitter.contiguous().numpy(), step, first, 0.0, 0.0, numpy.zeros(3), 0.0, 0.0, *_occupancy_args(occupied, aabb))
+    return PackedSamples(*_march_split(args, march_counts(near, far, step), first, limit, origins.dtype), far)
 
 
 def early_termination_keep(tau: torch.Tensor, ray_idx: torch.Tensor, n_rays: int, eps: float) -> torch.Tensor:
