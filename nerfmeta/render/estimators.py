@@ -11,10 +11,11 @@ marks follow the field) on the model's schedule.
 
 On a CPU the march is one compiled kernel (numba; :func:`contracted_march_fused` for a contracted space,
 :func:`march_fused` for a box): each ray's samples made one after another (in a contracted space each bin's far edge
-contracted once and reused as the next bin's near edge), the occupancy looked up at the sample's position, and only the
-kept samples written, the rays split over torch's threads. The same samples to float rounding (the kernel works in float64 inside, so it is closer to a
-float64 march than PyTorch's float32 ops are). A beer training step's march, 430k samples: about 8 ms against 17-24
-on the 2-core CPU (BENCHMARKS.md, *Fused march*).
+contracted once and reused as the next bin's near edge), the occupancy looked up at the sample's position, and only
+the kept samples written, the rays split over torch's threads. The same samples to float rounding (the kernel works
+in float64 inside, so it is closer to a float64 march than PyTorch's float32 ops are). A beer training step's march,
+430k samples: about 8 ms against 17-24 on the 2-core CPU; lego's at 100 x 100, 88k samples: 2.5-3.5 ms against
+7.7-11.4 (BENCHMARKS.md, *Fused march*).
 
 A field that needs no estimator samples its own way (e.g. the NeRF MLP's stratified +
 importance sampling in :mod:`nerfmeta.render.sampling`).
@@ -237,15 +238,17 @@ def _occupancy_args(occupied: torch.Tensor | None, aabb: torch.Tensor | None) ->
 
 def _march_split(args: tuple, counts: torch.Tensor, first: int, limit: int | None,
                  dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Runs the march's kernel (:func:`nerfmeta.render._march_numba.march`, given ``args`` after its first three) over the windows ``first .. first + limit - 1`` of rays of ``counts`` samples, its rays
-    split where the samples are shared out evenly over torch's threads, each part writing its kept samples packed
-    from the offset of its first ray: ``ray_idx``, ``t``, ``delta`` of the kept samples, packed."""
+    """Runs the march's kernel (:func:`nerfmeta.render._march_numba.march`, ``args`` its arguments after the first
+    three) over the windows ``first .. first + limit - 1`` of rays of ``counts`` samples, the rays split where the
+    samples are shared out evenly over torch's threads, each part writing its kept samples packed from the offset of
+    its first ray: ``ray_idx``, ``t``, ``delta`` of the kept samples, packed."""
     window = (counts - first).clamp_(min=0)
     if limit is not None:
         window = window.clamp_(max=limit)
-    starts = torch.cat([window.new_zeros(1), torch.cumsum(window, 0)])  # (n_rays + 1,): each ray's first sample, the total
+    starts = torch.cat([window.new_zeros(1), torch.cumsum(window, 0)])  # (n_rays + 1,): rays' first samples, total
     total = int(starts[-1])
-    ray_idx, t, delta = torch.empty(total, dtype=torch.long), torch.empty(total, dtype=dtype), torch.empty(total, dtype=dtype)
+    ray_idx = torch.empty(total, dtype=torch.long)
+    t, delta = torch.empty(total, dtype=dtype), torch.empty(total, dtype=dtype)
     common = (counts.numpy(), window.numpy(), starts.numpy(), *args, ray_idx.numpy(), t.numpy(), delta.numpy())
     n_parts = fused.parts(total, MARCH_SPLIT_MIN_SAMPLES)
     cuts = [0, *torch.searchsorted(starts[:-1], torch.arange(1, n_parts) * total // n_parts).tolist(), len(counts)]
@@ -278,8 +281,9 @@ def march_fused(origins: torch.Tensor, directions: torch.Tensor, near: torch.Ten
     corner of ``occupied`` (X, Y, Z) bool over the box ``aabb`` (2, 3) is not set (None: all kept); rays on a CPU
     (:func:`fused_march`), ``near``/``far`` already clipped to the box."""
     near, far = near.contiguous(), far.contiguous()
+    no_box = (0.0, 0.0, numpy.zeros(3), 0.0, 0.0)  # scale, tiny, centre, radius 0 (no contraction), shell
     args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.numpy(), far.numpy(), far.numpy(),
-            jitter.contiguous().numpy(), step, first, 0.0, 0.0, numpy.zeros(3), 0.0, 0.0, *_occupancy_args(occupied, aabb))
+            jitter.contiguous().numpy(), step, first, *no_box, *_occupancy_args(occupied, aabb))
     return PackedSamples(*_march_split(args, march_counts(near, far, step), first, limit, origins.dtype), far)
 
 
@@ -401,9 +405,10 @@ class OccupancyGrid(nn.Module):
         if fused_march(origins):
             skip = skip_empty and self.skips
             marks, aabb = (self.binaries, self.aabb) if skip else (None, None)
-            if self.box is not None:
-                return contracted_march_fused(origins, directions, near, self.box, step, jitter, first, limit, marks, aabb)
-            return march_fused(origins, directions, near, far, step, jitter, first, limit, marks, aabb)
+            if self.box is None:
+                return march_fused(origins, directions, near, far, step, jitter, first, limit, marks, aabb)
+            return contracted_march_fused(origins, directions, near, self.box, step, jitter, first, limit,
+                                          marks, aabb)
         if self.box is not None:
             samples = contracted_march(origins, directions, near, self.box, step, jitter, first, limit)
         else:
