@@ -2,8 +2,9 @@
 
 Four families of kernels replace chains of PyTorch ops on CPU tensors with compiled loops: the grid lookups
 (:mod:`nerfmeta.fields.grid_kernels`), the packed compositor (:func:`nerfmeta.render.volume.render_packed`), the
-contraction of an unbounded scene's points (:meth:`nerfmeta.render.contraction.InnerBox.contract`) and the march
-through its contracted space (:func:`nerfmeta.render.estimators.contracted_march_fused`).
+contraction of an unbounded scene's points (:meth:`nerfmeta.render.contraction.InnerBox.contract`) and the occupancy
+grid's march, through a contracted space or a box (:func:`nerfmeta.render.estimators.contracted_march_fused`,
+:func:`~nerfmeta.render.estimators.march_fused`).
 All are optional: without numba, for tensors on a GPU, or with ``NERFMETA_FUSED_LOOKUPS=0`` in the environment
 (the switch's name from when the lookups were the only kernels) PyTorch's ops run, with the same values to float
 rounding (each family's tests compare both paths with a float64 reference).
