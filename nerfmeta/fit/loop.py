@@ -46,7 +46,7 @@ class FitConfig:
     time_budget_s: float | None = bounded(None, low=0, low_open=True)
     """Stop once this much optimisation time (seconds, evaluation excluded) has passed."""
     target_psnr: float | None = None
-    """Stop at the first evaluation whose test PSNR reaches this (dB)."""
+    """Stop at the first evaluation whose test PSNR reaches this (dB): an intermediate evaluation's, on the first ``eval_views`` test views (views larger than ``eval_max_rays`` allows scored on every s-th pixel), so the final figure over every test view and pixel can differ a little."""
     batch_rays: int = bounded(4096, low=1)
     """Rays per iteration."""
     seed: int = 0
