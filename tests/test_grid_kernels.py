@@ -12,6 +12,7 @@ import torch
 from autograd_graph import count_nodes
 from broken_numba import kernel_that_cannot_compile
 
+from nerfmeta import fused
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.fields import grid_kernels
 from nerfmeta.fields.grid_kernels import fused_available, fused_lookups, trilinear_coords
@@ -123,8 +124,8 @@ def test_lookups_split_over_threads_give_the_one_thread_values_and_gradients_bit
         return out.detach(), grid.grad.clone()
 
     calls = []
-    real_split = grid_kernels._split
-    monkeypatch.setattr(grid_kernels, "_split", lambda kernel, args: (calls.append(len(args)), real_split(kernel, args)))
+    real_split = fused.split
+    monkeypatch.setattr(fused, "split", lambda kernel, args: (calls.append(len(args)), real_split(kernel, args)))
     one, split = lookup_and_grad(1), lookup_and_grad(threads)
     assert calls == [1, 1, threads, threads]  # the lookup and its scatter, each split
     assert torch.equal(one[0], split[0]) and torch.equal(one[1], split[1])
@@ -142,7 +143,7 @@ def test_lookups_split_only_while_openmp_workers_wait_briefly(spincount, policy,
         else:
             monkeypatch.setenv(name, value)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
-    assert grid_kernels.short_openmp_wait() is split
+    assert fused.short_openmp_wait() is split
     assert grid_kernels._parts(10**6) == (2 if split else 1)
     assert grid_kernels._parts(grid_kernels.SPLIT_MIN_POINTS - 1) == 1
 

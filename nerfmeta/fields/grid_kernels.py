@@ -15,9 +15,9 @@ contiguous ranges, and its gradient scatter by the corner planes each thread own
 ``i % threads``), so no two threads write the same value and every value is summed in the points' order,
 bit for bit the one-thread result. The threads are Python threads running compiled loops that release
 the GIL; no numba threading layer is started, so there is no second OpenMP runtime beside PyTorch's.
-Lookups split only while PyTorch's own OpenMP workers spin briefly after their work (:func:`short_openmp_wait`;
-importing :mod:`nerfmeta` before torch sets that up), else a spinning worker holds the core the second
-thread needs. On the 2-core CPU the split gives a beer fit 1.26x the steps in 120 s and a lego fit 1.12x in
+Lookups split only while PyTorch's own OpenMP workers spin briefly after their work
+(:func:`nerfmeta.fused.short_openmp_wait`; importing :mod:`nerfmeta` before torch sets that up), else a spinning
+worker holds the core the second thread needs. On the 2-core CPU the split gives a beer fit 1.26x the steps in 120 s and a lego fit 1.12x in
 60 s (medians; BENCHMARKS.md, *Fused grid lookups*).
 
 A lookup of a grid larger than the CPU's last-level cache (:data:`SORT_MIN_BYTES`) first orders its points by the
@@ -57,7 +57,7 @@ import torch
 from nerfmeta import fused
 from nerfmeta.fields.grid_ops import corners_from_coords, grid_coords, trilinear_gather
 
-__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "last_level_cache_bytes", "short_openmp_wait",
+__all__ = ["fused_available", "fused_for", "fused_lookups", "interp_points", "last_level_cache_bytes",
            "trilinear_coords"]
 
 
@@ -122,10 +122,6 @@ def _parts(n_points: int) -> int:
     return fused.parts(n_points, SPLIT_MIN_POINTS)
 
 
-_split = fused.split
-short_openmp_wait = fused.short_openmp_wait
-
-
 def _ordered(grid_shape: tuple[int, ...], itemsize: int, x: torch.Tensor, by_block: bool = True,
              ) -> tuple[numpy.ndarray, numpy.ndarray]:
     """The order a lookup of a ``grid_shape`` grid visits the points ``x`` (3, N) in, and their coordinates in that
@@ -143,7 +139,7 @@ def _gather(grid: torch.Tensor, points: tuple[numpy.ndarray, numpy.ndarray]) -> 
     n = xs.shape[1]
     out = grid.new_empty(grid.shape[0], n)
     g, o, parts = grid.numpy(), out.numpy(), _parts(n)
-    _split(_kernels().gather, [(g, xs, o, order, n * q // parts, n * (q + 1) // parts) for q in range(parts)])
+    fused.split(_kernels().gather, [(g, xs, o, order, n * q // parts, n * (q + 1) // parts) for q in range(parts)])
     return out
 
 
@@ -201,7 +197,7 @@ def _scatter(values: torch.Tensor, points: tuple[numpy.ndarray, numpy.ndarray], 
     order, xs = points
     v, parts = values.detach().contiguous().numpy(), _parts(xs.shape[1])
     grad = _zeros(shape, v.dtype)
-    _split(_kernels().scatter, [(v, xs, grad, order, q, parts) for q in range(parts)])
+    fused.split(_kernels().scatter, [(v, xs, grad, order, q, parts) for q in range(parts)])
     return torch.from_numpy(grad)
 
 

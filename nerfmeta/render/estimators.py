@@ -282,7 +282,8 @@ def march_fused(origins: torch.Tensor, directions: torch.Tensor, near: torch.Ten
     (:func:`fused_march`), ``near``/``far`` already clipped to the box."""
     near, far = near.contiguous(), far.contiguous()
     no_box = (0.0, 0.0, numpy.zeros(3), 0.0, 0.0)  # scale, tiny, centre, radius 0 (no contraction), shell
-    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.numpy(), far.numpy(), far.numpy(),
+    args = (origins.contiguous().numpy(), directions.contiguous().numpy(), near.numpy(), far.numpy(),
+            far.numpy(),  # in the inner-box exit's place: unread without a box
             jitter.contiguous().numpy(), step, first, *no_box, *_occupancy_args(occupied, aabb))
     return PackedSamples(*_march_split(args, march_counts(near, far, step), first, limit, origins.dtype), far)
 
