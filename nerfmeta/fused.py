@@ -1,10 +1,11 @@
 """The one switch of nerfmeta's fused CPU kernels (numba), their loader, and how they split over threads.
 
-Four families of kernels replace chains of PyTorch ops on CPU tensors with compiled loops: the grid lookups
+Five families of kernels replace chains of PyTorch ops on CPU tensors with compiled loops: the grid lookups
 (:mod:`nerfmeta.fields.grid_kernels`), the packed compositor (:func:`nerfmeta.render.volume.render_packed`), the
-contraction of an unbounded scene's points (:meth:`nerfmeta.render.contraction.InnerBox.contract`) and the occupancy
+contraction of an unbounded scene's points (:meth:`nerfmeta.render.contraction.InnerBox.contract`), the occupancy
 grid's march, through a contracted space or a box (:func:`nerfmeta.render.estimators.contracted_march_fused`,
-:func:`~nerfmeta.render.estimators.march_fused`).
+:func:`~nerfmeta.render.estimators.march_fused`), and the learned start's per-voxel inputs
+(:func:`nerfmeta.priors.occupancy.occupancy_inputs`).
 All are optional: without numba, for tensors on a GPU, or with ``NERFMETA_FUSED_LOOKUPS=0`` in the environment
 (the switch's name from when the lookups were the only kernels) PyTorch's ops run, with the same values to float
 rounding (each family's tests compare both paths with a float64 reference).

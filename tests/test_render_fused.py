@@ -133,7 +133,7 @@ def test_a_numba_that_cannot_compile_means_the_pytorch_path_with_a_warning(monke
 
 def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypatch):
     """``warm_up`` (called by ``run_fit`` before the clock) loads the compositor's, the contraction's and the march's
-    kernels."""
+    kernels, and the grid's the learned start's."""
     from nerfmeta import fused
     from nerfmeta.fields.registry import BACKBONES
 
@@ -144,6 +144,8 @@ def test_every_backbone_loads_the_renderers_kernels_before_a_fits_clock(monkeypa
         monkeypatch.undo()
         assert {"nerfmeta.render._volume_numba", "nerfmeta.render._contraction_numba",
                 "nerfmeta.render._march_numba"} <= set(asked), backbone
+        # the grid's also the learned start's, which the default route builds a grid with before the fit's clock
+        assert ("nerfmeta.priors._features_numba" in asked) == (backbone == "grid"), backbone
 
 
 @needs_numba

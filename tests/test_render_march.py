@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from broken_numba import kernel_that_cannot_compile
+from kernel_threads import split_over
 
 from nerfmeta.fused import fused_kernels
 from nerfmeta.render import estimators
@@ -119,12 +120,7 @@ def test_split_over_threads_the_march_is_the_one_thread_march_bit_for_bit(space,
     grid, (o, d, near, far, jitter) = make_grid(), make_rays(200, torch.float32, seed=4)
     near[150:] = 1e12  # the last rays have no samples: a part may get none
     one = grid.sampling(o, d, near, far, step=step, jitter=jitter)
-    monkeypatch.setenv("GOMP_SPINCOUNT", "10000")
-    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
-    monkeypatch.setattr(estimators, "MARCH_SPLIT_MIN_SAMPLES", 1)
-    calls = []
-    real = estimators.fused.split
-    monkeypatch.setattr(estimators.fused, "split", lambda kernel, args: (calls.append(len(args)), real(kernel, args))[1])
+    calls = split_over(monkeypatch, threads, estimators, "MARCH_SPLIT_MIN_SAMPLES")
     split = grid.sampling(o, d, near, far, step=step, jitter=jitter)
     assert calls == [threads] and len(split) > 1000
     assert all(torch.equal(getattr(split, k), getattr(one, k)) for k in ("ray_idx", "t", "delta", "far"))

@@ -486,9 +486,13 @@ class VoxelGrid(RadianceModel):
     @classmethod
     def warm_up(cls) -> None:
         """Load the fused CPU lookups (:mod:`~nerfmeta.fields.grid_kernels`: about half a second the first time in a
-        process with numba's cache warm)."""
+        process with numba's cache warm) and the learned start's feature kernel
+        (:func:`~nerfmeta.priors.occupancy.fused_inputs_available`), which the default route builds a grid with."""
+        from nerfmeta.priors.occupancy import fused_inputs_available  # the priors import this module
+
         super().warm_up()
         fused_available()
+        fused_inputs_available()
 
     def _init_coarse(self, bounds: torch.Tensor, size: tuple[int, int, int]) -> None:
         cfg = self.config

@@ -17,22 +17,27 @@ import dataclasses
 import os
 import time
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Any, Callable, Collection
 
+import numpy
 import torch
 import torch.nn as nn
 
+from nerfmeta import fused
 from nerfmeta.data.scene import Scene
 from nerfmeta.errors import ConfigError, message_line
 from nerfmeta.fields.grid_ops import dilate, grid_points
 from nerfmeta.io import load_tensors
-from nerfmeta.priors.carve import SEEN_FRACTION, dilate_masks, in_hull, lookup, silhouettes, visual_hull
+from nerfmeta.priors.carve import HULL_MISSES, MISS_EVERY, SEEN_FRACTION, dilate_masks, in_hull, lookup, silhouettes, visual_hull
 from nerfmeta.priors.start import StartReport, carve_blocker, load_occupied_start
 
 N_FEATURES = 10
 """Features per point (:func:`point_features`)."""
 ALLOWED_MARGIN_PX = 2
 """The start keeps only points of the visual hull with masks dilated this many pixels, grown one voxel in 3-D."""
+FUSED_SPLIT_MIN_POINTS = 1 << 14
+""":func:`occupancy_inputs`' kernel splits at least this many points over torch's threads (:func:`nerfmeta.fused.parts`)."""
 THRESHOLD = 0.02
 """A point starts occupied when the network gives it at least this probability (recall first: a point started empty
 behind a filled one is never sampled again). 0.1 (the first choice) left two unseen sofas about 7 % of their surface
@@ -106,7 +111,9 @@ class OccupancyNet(nn.Module):
         return net.eval()
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.net(features[None])[0, 0]
+        # channels last: oneDNN's convolutions on a CPU read it without a reorder (1.1x on one thread, 1.5x on two of
+        # the 2-core CPU for a 128 px scene's 44 x 86 x 48 grid; the same logits to 1e-6)
+        return self.net(features[None].contiguous(memory_format=torch.channels_last_3d))[0, 0]
 
 
 def load_occupancy_net(path: str | os.PathLike) -> OccupancyNet:
@@ -158,11 +165,60 @@ def allowed_points(inside: torch.Tensor, seen_fraction: torch.Tensor, size: tupl
     return dilate((inside & (seen_fraction >= SEEN_FRACTION)).view(size), 1)
 
 
+def _smoke(kernels: ModuleType) -> None:
+    """Runs the kernel on one point and one 1 x 1 view, so it does not compile inside a start."""
+    kernels.point_inputs(numpy.zeros((1, 3), numpy.float32), numpy.array([[[0.0, 0, 0, 0.5], [0, 0, 0, 0.5], [0, 0, 0, 1]]]),
+                         numpy.full((1, 1, 1), 7, numpy.uint8), numpy.ones((1, 1, 1, 3), numpy.float32), HULL_MISSES,
+                         MISS_EVERY, numpy.empty((N_FEATURES, 1), numpy.float32), numpy.empty(1, bool), 0, 1)
+
+
+def _kernels() -> ModuleType | None:
+    return fused.load("nerfmeta.priors._features_numba", _smoke, "learned start's feature kernel")
+
+
+def fused_inputs_available() -> bool:
+    """True when :func:`occupancy_inputs` can use its fused kernel (numba importable, the kernel compiled or loaded,
+    which this call does once per process, and not switched off: :mod:`nerfmeta.fused`)."""
+    return fused.enabled() and _kernels() is not None
+
+
+def projection_matrices(poses: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+    """(V, 3, 4) float64 rows giving a world point's ``(x * d, y * d, d)``: its pixel position (as
+    :func:`~nerfmeta.priors.carve.project`) times its depth ``d`` in front of the camera, for (V, 4, 4) camera-to-world
+    ``poses`` (OpenGL cameras, looking along -z) and (V, 4) ``(fx, fy, cx, cy)``."""
+    rot, t = poses[:, :3, :3].double(), poses[:, :3, 3].double()
+    world_to_camera = torch.cat([rot.transpose(1, 2), -(rot.transpose(1, 2) @ t[..., None])], 2)  # [R^T | -R^T t]
+    fx, fy, cx, cy = (intrinsics[:, k, None].double() for k in range(4))
+    depth = -world_to_camera[:, 2]
+    return torch.stack([fx * world_to_camera[:, 0] + cx * depth, cy * depth - fy * world_to_camera[:, 1], depth], 1)
+
+
+def _fused_inputs(views: GridViews, dilated: torch.Tensor, wide: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, N) features and (N,) hull test of ``views``' points by the kernel
+    (:mod:`nerfmeta.priors._features_numba`; the projection in float64), the points split over torch's threads."""
+    n = views.points.shape[0]
+    features, inside = torch.empty(N_FEATURES, n), torch.empty(n, dtype=torch.bool)
+    flags = views.masks.to(torch.uint8) | (dilated.to(torch.uint8) << 1) | (wide.to(torch.uint8) << 2)
+    common = (views.points.detach().float().contiguous().numpy(),
+              projection_matrices(views.poses.detach(), views.intrinsics.detach()).contiguous().numpy(),
+              flags.contiguous().numpy(), views.images.detach().float().contiguous().numpy(), HULL_MISSES, MISS_EVERY,
+              features.numpy(), inside.numpy())
+    n_parts = fused.parts(n, FUSED_SPLIT_MIN_POINTS)
+    cuts = [n * p // n_parts for p in range(n_parts + 1)]
+    fused.split(_kernels().point_inputs, [(*common, cuts[p], cuts[p + 1]) for p in range(n_parts)])
+    return features, inside
+
+
 def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 1 << 15) -> tuple[torch.Tensor, torch.Tensor]:
     """The network's input on a coarse grid of ``size`` corners, (F, X, Y, Z) :func:`point_features`, and the
     (X, Y, Z) points it may fill: the visual hull with :data:`ALLOWED_MARGIN_PX` of mask margin, grown a voxel.
-    One projection of the points serves both."""
+    One projection of the points serves both: on a CPU a fused kernel's (:func:`fused_inputs_available`; the same
+    values to float rounding), else PyTorch's in chunks of ``chunk`` points."""
     v = views.masks.shape[0]
+    if views.points.device.type == "cpu" and fused_inputs_available():
+        dilated, wide = (dilate_masks(views.masks, px) for px in (1, ALLOWED_MARGIN_PX))
+        feats, inside = _fused_inputs(views, dilated, wide)
+        return feats.reshape(N_FEATURES, *size), allowed_points(inside, feats[0], size)
     dilated, wide = (dilate_masks(views.masks, px).reshape(v, -1) for px in (1, ALLOWED_MARGIN_PX))
     flat_images = views.images.reshape(v, -1, 3)
     feats, inside = [], []
