@@ -21,11 +21,11 @@ def point_inputs(points, projection, flags, images, misses: int, miss_every: int
                  n1: int) -> None:  # pragma: no cover - compiled
     """Features and hull test of the points ``n0 <= n < n1``.
 
-    ``points`` (N, 3); per view ``rot`` (V, 3, 3) camera-to-world rotation, ``origin`` (V, 3) camera centre,
-    ``intrinsics`` (V, 4) ``(fx, fy, cx, cy)`` (OpenGL cameras looking along -z, as
-    :func:`nerfmeta.priors.carve.project`); ``masks``, ``dilated``, ``wide`` (V, H, W) bool foreground, the same
-    dilated a pixel and :data:`~nerfmeta.priors.occupancy.ALLOWED_MARGIN_PX` pixels; ``images`` (V, H, W, 3).
-    Writes ``features`` (10, N) (:func:`~nerfmeta.priors.occupancy.point_features`' order) and ``inside`` (N,)
+    ``points`` (N, 3); per view ``projection`` (V, 3, 4) float64, the rows giving a point's pixel position times its
+    depth and the depth (:func:`nerfmeta.priors.occupancy.projection_matrices`); ``flags`` (V, H, W) uint8, bit 0 the
+    foreground mask, bit 1 the mask dilated a pixel, bit 2 dilated
+    :data:`~nerfmeta.priors.occupancy.ALLOWED_MARGIN_PX` pixels; ``images`` (V, H, W, 3). A point is seen by a view
+    when its depth exceeds 1e-6 and it falls inside the image (as :func:`nerfmeta.priors.carve.lookup`). Writes ``features`` (10, N) (:func:`~nerfmeta.priors.occupancy.point_features`' order) and ``inside`` (N,)
     (:func:`~nerfmeta.priors.carve.in_hull` on the ``wide`` masks, ``misses`` and ``miss_every`` its rule).
     """
     v, h, w = flags.shape

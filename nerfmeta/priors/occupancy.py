@@ -111,8 +111,8 @@ class OccupancyNet(nn.Module):
         return net.eval()
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        # channels last: oneDNN's convolutions on a CPU read it without a reorder (1.1x on one thread, 1.5x on two of
-        # the 2-core CPU for a 128 px scene's 44 x 86 x 48 grid; the same logits to 1e-6)
+        # channels last: oneDNN's convolutions on a CPU read it without a reorder (1.4x on two threads of the 2-core CPU
+        # for a 128 px scene's 44 x 86 x 48 grid, about the same on one; the same logits to 1e-6)
         return self.net(features[None].contiguous(memory_format=torch.channels_last_3d))[0, 0]
 
 
