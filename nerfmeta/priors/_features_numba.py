@@ -25,8 +25,9 @@ def point_inputs(points, projection, flags, images, misses: int, miss_every: int
     depth and the depth (:func:`nerfmeta.priors.occupancy.projection_matrices`); ``flags`` (V, H, W) uint8, bit 0 the
     foreground mask, bit 1 the mask dilated a pixel, bit 2 dilated
     :data:`~nerfmeta.priors.occupancy.ALLOWED_MARGIN_PX` pixels; ``images`` (V, H, W, 3). A point is seen by a view
-    when its depth exceeds 1e-6 and it falls inside the image (as :func:`nerfmeta.priors.carve.lookup`). Writes ``features`` (10, N) (:func:`~nerfmeta.priors.occupancy.point_features`' order) and ``inside`` (N,)
-    (:func:`~nerfmeta.priors.carve.in_hull` on the ``wide`` masks, ``misses`` and ``miss_every`` its rule).
+    when its depth exceeds 1e-6 and it falls inside the image (as :func:`nerfmeta.priors.carve.lookup`). Writes
+    ``features`` (10, N) (:func:`~nerfmeta.priors.occupancy.point_features`' order) and ``inside`` (N,)
+    (:func:`~nerfmeta.priors.carve.in_hull` on the masks of bit 2, ``misses`` and ``miss_every`` its rule).
     """
     v, h, w = flags.shape
     for n in range(n0, n1):

@@ -215,19 +215,18 @@ def occupancy_inputs(views: GridViews, size: tuple[int, int, int], chunk: int = 
     One projection of the points serves both: on a CPU a fused kernel's (:func:`fused_inputs_available`; the same
     values to float rounding), else PyTorch's in chunks of ``chunk`` points."""
     v = views.masks.shape[0]
+    dilated, wide = (dilate_masks(views.masks, px) for px in (1, ALLOWED_MARGIN_PX))
     if views.points.device.type == "cpu" and fused_inputs_available():
-        dilated, wide = (dilate_masks(views.masks, px) for px in (1, ALLOWED_MARGIN_PX))
         feats, inside = _fused_inputs(views, dilated, wide)
-        return feats.reshape(N_FEATURES, *size), allowed_points(inside, feats[0], size)
-    dilated, wide = (dilate_masks(views.masks, px).reshape(v, -1) for px in (1, ALLOWED_MARGIN_PX))
-    flat_images = views.images.reshape(v, -1, 3)
-    feats, inside = [], []
-    for p in views.points.split(chunk):
-        flat, seen, fg = lookup(p, views.masks, views.poses, views.intrinsics)
-        feats.append(_features(flat, seen, fg, dilated, flat_images))
-        inside.append(in_hull(seen, torch.gather(wide, 1, flat) & seen))
-    feats = torch.cat(feats, 1)
-    return feats.reshape(N_FEATURES, *size).float(), allowed_points(torch.cat(inside), feats[0], size)
+    else:
+        dilated, wide, flat_images = dilated.reshape(v, -1), wide.reshape(v, -1), views.images.reshape(v, -1, 3)
+        chunks = []
+        for p in views.points.split(chunk):
+            flat, seen, fg = lookup(p, views.masks, views.poses, views.intrinsics)
+            chunks.append((_features(flat, seen, fg, dilated, flat_images),
+                           in_hull(seen, torch.gather(wide, 1, flat) & seen)))
+        feats, inside = torch.cat([f for f, _ in chunks], 1).float(), torch.cat([i for _, i in chunks])
+    return feats.reshape(N_FEATURES, *size), allowed_points(inside, feats[0], size)
 
 
 @dataclass(frozen=True)
