@@ -36,6 +36,7 @@ main fit's against the ``baseline`` compared fit (rules in :mod:`nerfmeta.report
 from __future__ import annotations
 
 import logging
+import os
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -275,7 +276,7 @@ def write_report(
             plot_psnr_bands(bands, key, out_dir / file, title=f"{label} ({numbers['n_runs']} runs): test PSNR, mean ± sd")
             numbers["plots"].append(file)
     write_json(out_dir / "report.json", report)
-    write_bytes_atomic(out_dir / "report.md", report_markdown(report).encode())
+    write_bytes_atomic(out_dir / "report.md", report_markdown(report, base=out_dir).encode())
     return report
 
 
@@ -296,8 +297,12 @@ def _x(value: float | None) -> str:
     return "never" if value is None else f"{value:.2f}x"
 
 
-def report_markdown(report: Mapping[str, Any]) -> str:
-    """``report.md`` of :func:`build_report`'s numbers (with the plot names filled in)."""
+def report_markdown(report: Mapping[str, Any], *, base: Path | None = None) -> str:
+    """``report.md`` of :func:`build_report`'s numbers (with the plot names filled in).
+
+    With ``base`` (the report's folder) each run is named by its path relative to it, so the file stays true when the
+    tree holding runs and report moves (the demo builds its folder aside and swaps it in after the report is written).
+    """
     methods, baseline = report["methods"], report["baseline"]
     lines = [f"# Fit report: {report['n_runs']} runs", ""]
     routing = report["routing"]
@@ -359,7 +364,8 @@ def report_markdown(report: Mapping[str, Any]) -> str:
         c = r["comparison"]
         tail = ["—", "—", "—", "—"] if c is None else [_x(c.get("speedup_wall")), _x(c["speedup_iters"]), _x(c["speedup_time"]),
                                                   {True: "yes", False: "no", None: "—"}[c["ahead_at_every_eval"]]]
-        lines.append(f"| {r['run']} | {Path(str(r['scene'])).name} | {r['category'] or '—'} | {routed} | {right} | "
+        run = r["run"] if base is None else os.path.relpath(r["run"], base)
+        lines.append(f"| {run} | {Path(str(r['scene'])).name} | {r['category'] or '—'} | {routed} | {right} | "
                      + " | ".join(psnrs + tail) + " |")
     lines += ["", "Rules: " + "; ".join(f"{k}: {v}" for k, v in report["rules"].items() if k != "routing"), ""]
     return "\n".join(lines)
