@@ -154,7 +154,7 @@ def test_a_fixed_view_dependent_is_recorded_not_measured(scene, value):
 
 
 def test_view_dependent_config_values_and_json():
-    assert VoxelGridConfig().view_dependent is True  # "auto" only by scene type: unbounded captures (BENCHMARKS.md)
+    assert VoxelGridConfig().view_dependent == "auto"  # every scene's default since session 43 (BENCHMARKS.md)
     for value in (True, False, "auto"):
         assert VoxelGridConfig(view_dependent=value).view_dependent == value
     with pytest.raises(Exception, match="view_dependent"):

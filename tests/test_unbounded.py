@@ -97,14 +97,15 @@ def test_contracted_fit_learns_and_its_structure_round_trips(scenes):
         assert torch.equal(model(rays, background=WHITE).rgb, other(rays, background=WHITE).rgb)
 
 
-def test_unbounded_scenes_default_to_the_view_dependence_trial_and_set_still_wins(scenes):
-    """An unbounded capture's grid decides per scene whether to keep the colour MLP (``view_dependent="auto"``,
-    the scene type's default); an object scene keeps it always, and ``--set`` overrides either."""
+def test_every_scene_defaults_to_the_view_dependence_trial_and_set_still_wins(scenes):
+    """An unbounded capture's grid decides per scene whether to keep the colour MLP (``view_dependent="auto"``, the
+    scene type's default and, since session 43, every scene's); ``--set`` overrides it on either kind."""
     run = RunConfig(scene="x", backbone="grid")
     assert run.model_config(scenes["unbounded"]).view_dependent == "auto"
-    assert run.model_config(scenes["auto"]).view_dependent is True  # the tiny scene is an object on white
-    kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
-    assert kept.model_config(scenes["unbounded"]).view_dependent is True
+    assert run.model_config(scenes["auto"]).view_dependent == "auto"  # the tiny scene is an object on white
+    for kind in ("unbounded", "auto"):
+        kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
+        assert kept.model_config(scenes[kind]).view_dependent is True
 
 
 def test_unbounded_scenes_march_one_voxel_steps_and_set_still_wins(scenes):

@@ -10,8 +10,8 @@ Two stages, as in DirectVoxGO (Sun et al., CVPR 2022):
 2. **Fine**: a density grid and a feature grid in the tightened box. Colour is
    ``sigmoid(diffuse + mlp(features, view))`` (DirectVoxGO's non-direct colour head): the feature
    grid holds 3 diffuse logits plus ``feature_dim`` channels that a shallow MLP decodes with the
-   encoded view direction; the MLP's last layer starts at zero. With ``view_dependent="auto"`` (opt-in,
-   see the field's note) this is a per-scene trial: ``view_probe_step`` steps into the fine stage,
+   encoded view direction; the MLP's last layer starts at zero. With ``view_dependent="auto"`` (the
+   default, see the field's note) this is a per-scene trial: ``view_probe_step`` steps into the fine stage,
    :meth:`VoxelGrid.decide` measures on training rays how much lower the error is with the view
    direction than with the MLP's output averaged over training directions; when that gain is below
    ``view_gain_db`` the direction-averaged MLP is folded into the diffuse colour and the MLP and its
@@ -172,7 +172,8 @@ and on the features (``tv_features_weight`` 1e-2: no change)."""
 UNBOUNDED_DEFAULTS: dict[str, Any] = {"view_dependent": "auto", "stepsize": 1.0}
 """Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
 
-``view_dependent`` is the per-scene trial (``"auto"``) rather than the MLP always: every ray of such a capture
+``view_dependent`` is the per-scene trial (``"auto"``, every scene's default since session 43; named here because
+it was decided for these captures first) rather than the MLP always: every ray of such a capture
 ends on something, so most of its samples carry weight and are colour-decoded (beer at 178 x 316, grown grid:
 about 490k decoded samples a 4096-ray step, 60 % of those marched), and the MLP's products and their backward are
 most of a CPU step. On beer the view input lowered the training error by 0.07 dB, the trial dropped the MLP and
@@ -214,12 +215,12 @@ class VoxelGridConfig:
     """Width of the colour MLP."""
     mlp_depth: int = 3
     """Linear layers in the colour MLP (>= 1)."""
-    view_dependent: bool | str = True
-    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"``: decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it. The default for unbounded captures only (``UNBOUNDED_DEFAULTS``, where the MLP is most of a step): the trial tells diffuse from specular scenes, but on a diffuse generated car dropping the MLP cost 0.26 dB at equal iterations (0.44 dB in a 20 s budget), the MLP's capacity helping beyond view dependence (BENCHMARKS.md)."""
+    view_dependent: bool | str = "auto"
+    """Decode view-dependent colour with the MLP (True), keep the diffuse colour alone (False: no MLP, 3 feature channels), or ``"auto"`` (the default): decide per scene, ``view_probe_step`` steps into the fine stage, whether the MLP's view input lowers the training error by at least ``view_gain_db``; if not, fold the MLP into the diffuse colour and drop it. Since the fused kernels (sessions 37-41) the MLP is most of an object fit's step: where the trial drops it, 1000-step fits of generated 64 and 128 px objects took 0.5-0.7x the time and ended 0.2 dB lower at most (table 0.20, chair 0.10-0.16, vase 0.00-0.11, car and sofa within 0.03), and in a 20-s budget ended +0.05..+0.52 dB higher (table -0.14..-0.20); it kept the MLP on the metal-shaded lamps and lego, which need it (BENCHMARKS.md, *The colour MLP decided per scene by default*). With few views the trial over-reads the MLP's gain (it measures training error: 1.2 dB on a 16-view chair against 0.25 on its 40-view twin) and keeps it. ``true`` keeps it always (the default before session 43)."""
     view_probe_step: int = 100
     """``auto``: fine-stage step at which the view dependence is measured (the fine stage has the MLP until then)."""
     view_gain_db: float = 0.45
-    """``auto``: keep the MLP when its view input lowers the training MSE by at least this (dB) against its output averaged over training directions (measured at the trial's end: 0.07-0.33 dB on diffuse generated scenes, 0.76-1.42 dB on specular ones, 0.58-0.64 dB on lego; see BENCHMARKS.md)."""
+    """``auto``: keep the MLP when its view input lowers the training MSE by at least this (dB) against its output averaged over training directions (measured at the trial's end: 0.07-0.33 dB on diffuse generated scenes, 0.76-1.42 dB on specular ones, 0.58-0.64 dB on lego in session 8; in session 43 0.09-0.44 on the generated objects the trial dropped it on, 0.77-1.75 on those it kept it on, 0.65 on lego; see BENCHMARKS.md)."""
     view_probe_rays: int = 16384
     """``auto``: training rays rendered to measure the gain."""
     view_probe_dirs: int = 4
