@@ -36,8 +36,8 @@ main fit's against the ``baseline`` compared fit (rules in :mod:`nerfmeta.report
 from __future__ import annotations
 
 import logging
-import os
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
