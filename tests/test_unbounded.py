@@ -103,8 +103,8 @@ def test_every_scene_defaults_to_the_view_dependence_trial_and_set_still_wins(sc
     run = RunConfig(scene="x", backbone="grid")
     assert run.model_config(scenes["unbounded"]).view_dependent == "auto"
     assert run.model_config(scenes["auto"]).view_dependent == "auto"  # the tiny scene is an object on white
+    kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
     for kind in ("unbounded", "auto"):
-        kept = RunConfig(scene="x", backbone="grid", model={"view_dependent": True})
         assert kept.model_config(scenes[kind]).view_dependent is True
 
 

@@ -169,11 +169,11 @@ Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1
 and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
-UNBOUNDED_DEFAULTS: dict[str, Any] = {"view_dependent": "auto", "stepsize": 1.0}
+UNBOUNDED_DEFAULTS: dict[str, Any] = {"stepsize": 1.0}
 """Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
 
-``view_dependent`` is the per-scene trial (``"auto"``, every scene's default since session 43; named here because
-it was decided for these captures first) rather than the MLP always: every ray of such a capture
+(``view_dependent``: the field's default, the per-scene trial ``"auto"``, was decided for these captures first, in
+session 26, and for every scene since session 43, rather than the MLP always: every ray of such a capture
 ends on something, so most of its samples carry weight and are colour-decoded (beer at 178 x 316, grown grid:
 about 490k decoded samples a 4096-ray step, 60 % of those marched), and the MLP's products and their backward are
 most of a CPU step. On beer the view input lowered the training error by 0.07 dB, the trial dropped the MLP and
@@ -181,7 +181,7 @@ the 120-s fit made 578-601 steps instead of about 375: +0.28 dB on its nine held
 against 27.19), LPIPS 0.36 against 0.40, a visibly sharper walk video and test renders as fast (62k rays/s against
 61k; BENCHMARKS.md, #16 session 26). A capture whose view dependence pays (glossy paint, glass) keeps the MLP;
 ``--set view_dependent=true`` keeps it always. A transfer fit keeps its saved model's setting, and a resumed run the
-setting it was started with (its ``config.json`` holds the whole model config).
+setting it was started with (its ``config.json`` holds the whole model config).)
 
 ``stepsize`` 1.0 (one sample a voxel, DirectVoxGO's LLFF step; its unbounded config marches half voxels): on a CPU
 the walk video's sharpness is a matter of steps (a GPU fit of beer went from soft at 360 steps to sharp at
