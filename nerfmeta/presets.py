@@ -51,6 +51,7 @@ PRESETS: Mapping[str, Preset] = MappingProxyType({
         fit=MappingProxyType({
             "batch_rays": 512,
             "lr_decay": 0.3,  # rates end at 0.3 of their start, not 0.1: a fuller carve, a thinner inner wall in 10 min
+            "holdout_tile": 0.0,  # every pixel trained on, and no early stop: the recipe's eikonal ramp runs late
         }),
         about="surfaces of concave objects (a cup, a bowl) with --backbone sdf: the README recipe that carved every "
               "generated mug in 10-minute fits (BENCHMARKS.md, Surfaces: carving concavities, sections 9-16); its "

@@ -71,8 +71,9 @@ class CategoryPretrainConfig:
     """Backbone name (``grid`` or ``nerf``); transfer fits use the same one."""
     model: dict[str, Any] = field(default_factory=dict)
     """Backbone config overrides (JSON form); missing keys take the backbone's defaults."""
-    fit: FitConfig = FitConfig()
-    """Optimisation settings (the same loop, optimiser and schedule as ``nerfmeta fit``)."""
+    fit: FitConfig = FitConfig(holdout_tile=0.0)
+    """Optimisation settings (the same loop, optimiser and schedule as ``nerfmeta fit``; no held-out tiles: a category
+    model is fitted to every pixel of its scenes for its whole length, as the shipped zoo's were)."""
     max_scenes: int | None = None
     """Use at most this many training scenes (the first by name); None: all of them."""
     downscale: float = 1.0

@@ -183,7 +183,8 @@ def build_zoo(recipe: ZooRecipe, out: str | os.PathLike, work: str | os.PathLike
             save_classifier(clf_dir, load_classifier(clf_dir), keep, weights_dtype=torch.float16)
     clf_doc = json.loads((clf_dir / "classifier.json").read_text())
 
-    fit = FitConfig(iters=recipe.category_iters, batch_rays=recipe.batch_rays, seed=recipe.seed, eval_every=0, checkpoint_every=0)
+    fit = FitConfig(iters=recipe.category_iters, batch_rays=recipe.batch_rays, seed=recipe.seed, eval_every=0, checkpoint_every=0,
+                    holdout_tile=0.0)  # category models fit every pixel for their whole length (nerfmeta.commands.pretrain)
     category_dirs = {}
     with _step("category_models", timings, work):
         for category in recipe.known:

@@ -43,7 +43,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> dict:
         for backbone, overrides in MODELS.items():
             models[backbone] = root / f"chair_{backbone}"
             config = CategoryPretrainConfig(collection=str(root / "col"), category="chair", backbone=backbone,
-                                            model=overrides, fit=FitConfig(iters=80, batch_rays=256, eval_every=0))
+                                            model=overrides, fit=FitConfig(iters=80, batch_rays=256, eval_every=0, holdout_tile=0.0))
             pretrain_category(config, models[backbone])
     finally:
         torch.set_num_threads(threads)
@@ -122,7 +122,7 @@ def test_transfer_starts_well_above_scratch_on_a_scene_of_the_category(world, ba
     for name, model in starts.items():
         initial = evaluate_views(model, scene, list(scene.splits["train"]), torch.ones(3), with_ssim=False).psnr
         records = []
-        fit(model, scene, FitConfig(iters=1, batch_rays=256, eval_every=0), background=torch.ones(3),
+        fit(model, scene, FitConfig(iters=1, batch_rays=256, eval_every=0, holdout_tile=0.0), background=torch.ones(3),
             callbacks=[lambda record, m, s: records.append(record)])
         first[name] = (initial, records[0].train_psnr)
     for other, margin in (("scratch", 2.0), ("fresh", 2.0 if backbone == "nerf" else 1.0)):

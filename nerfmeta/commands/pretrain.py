@@ -15,8 +15,9 @@ PRETRAIN_OPTIONS = ("category", "backbone", "max_scenes", "downscale", "backgrou
 """The ``CategoryPretrainConfig`` fields that are options (the collection is positional; ``model`` is ``--set``)."""
 FIT_OPTIONS = ("iters", "batch_rays", "seed", "eval_every", "checkpoint_every")
 """The :class:`FitConfig` fields that are options of a category pretraining."""
-FIT_DEFAULTS = {"eval_every": 0}
-"""Where a category pretraining's optimisation settings differ from a fit's defaults."""
+FIT_DEFAULTS = {"eval_every": 0, "holdout_tile": 0.0}
+"""Where a category pretraining's optimisation settings differ from a fit's defaults (no held-out tiles: a category
+model is a start for other scenes, fitted to its scenes' every pixel for its whole length, as the shipped zoo was)."""
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

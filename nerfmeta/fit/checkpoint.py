@@ -7,6 +7,7 @@ guard's learning-rate factor and events are kept, so a resumed fit continues wit
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,12 +18,15 @@ import torch
 from nerfmeta.errors import NerfmetaError
 from nerfmeta.fields.base import RadianceModel
 from nerfmeta.fit.guard import GuardEvent
+from nerfmeta.fit.holdout import BestSnapshot
 from nerfmeta.fit.loop import FitState
 from nerfmeta.runfolder import CHECKPOINT, load_checkpoint as load_checkpoint_file, optimizer_state, optimizer_tensors
 from nerfmeta.runfolder import save_checkpoint as save_checkpoint_file
 
 CHECKPOINT_NAME = CHECKPOINT
 _KIND = "fit"
+_BEST = "best."
+"""Prefix of the best held-out snapshot's tensors (:class:`~nerfmeta.fit.holdout.BestSnapshot`) beside ``model.``."""
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,8 @@ def save_checkpoint(path: str | os.PathLike, model: RadianceModel, state: FitSta
         tensors.update(optim)
     if state.rng_state is not None:
         tensors["rng"] = state.rng_state
+    if state.best is not None:  # the parameters the fit will end with if nothing scores better on the held-out tiles
+        tensors.update({f"{_BEST}{name}": value for name, value in state.best.tensors.items()})
     meta = {
         "backbone": model.backbone,
         "structure": model.structure(),
@@ -55,6 +61,8 @@ def save_checkpoint(path: str | os.PathLike, model: RadianceModel, state: FitSta
         "lr_guard_scale": state.lr_guard_scale,
         "guard_events": [e.as_json() for e in state.guard_events],
         "optimizer": optim_meta,
+        "best": None if state.best is None else state.best.meta(),
+        "holdout_psnr": None if state.holdout_psnr == -math.inf else state.holdout_psnr,
     }
     save_checkpoint_file(path, _KIND, tensors, meta)
 
@@ -73,8 +81,17 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
         decisions=meta.get("decisions", {}),
         lr_guard_scale=float(meta.get("lr_guard_scale", 1.0)),
         guard_events=[GuardEvent.from_json(e) for e in meta.get("guard_events", [])],
+        best=_best(meta.get("best"), ckpt.prefixed(_BEST)),
+        holdout_psnr=-math.inf if meta.get("holdout_psnr") is None else float(meta["holdout_psnr"]),
     )
     return Checkpoint(meta["backbone"], meta["structure"], ckpt.prefixed("model."), state)
+
+
+def _best(meta: dict[str, Any] | None, tensors: dict[str, torch.Tensor]) -> BestSnapshot | None:
+    """The best held-out snapshot a checkpoint holds (None in checkpoints of fits without held-out tiles, or older)."""
+    if not meta:
+        return None
+    return BestSnapshot(int(meta["step"]), float(meta["psnr"]), meta["structure"], tensors)
 
 
 def restore_model(model: RadianceModel, checkpoint: Checkpoint) -> None:

@@ -13,6 +13,7 @@ import torch
 
 from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
+from nerfmeta.fit.holdout import Tiles, tile_pixels
 from nerfmeta.render.ndc import NEAR_FACTOR, NDCSpace, ndc_box, ndc_space, to_ndc
 from nerfmeta.render.rays import camera_rays, image_rays
 
@@ -57,13 +58,15 @@ def rays_in_space(
 
 
 class RaySampler:
-    """Draws random training pixels (uniformly over all pixels of all views of a split).
+    """Draws random training pixels (uniformly over all pixels of all views of a split, less any held-out tiles).
 
     Rays are built per batch from the pose and intrinsics of each pixel's view, so memory holds
-    only the images, not one ray per pixel.
+    only the images, not one ray per pixel. With ``tiles`` (:func:`~nerfmeta.fit.holdout.place_tiles`, one per view
+    of the split) a draw that lands in a view's tile is drawn again, so the tiles' pixels are never trained on;
+    :meth:`held_out` gives them as rays to score.
     """
 
-    def __init__(self, scene: Scene, split: str, device: torch.device | str):
+    def __init__(self, scene: Scene, split: str, device: torch.device | str, tiles: Tiles | None = None):
         idx = scene.split_indices(split)
         if len(idx) == 0:
             raise ValueError(f"scene has no '{split}' views")
@@ -74,6 +77,9 @@ class RaySampler:
         self.near, self.far = float(scene.near), float(scene.far)
         self.ndc = scene.ndc
         self.n_views, self.height, self.width = self.images.shape[:3]
+        if tiles is not None and len(tiles.rows) != self.n_views:
+            raise ValueError(f"{len(tiles.rows)} tiles for {self.n_views} '{split}' views")
+        self.tiles = tiles
 
     @property
     def n_pixels(self) -> int:
@@ -83,18 +89,37 @@ class RaySampler:
         """A batch of ``n_rays`` random training rays with their target colours."""
         return self.draw(n_rays, generator)[0]
 
-    def draw(self, n_rays: int, generator: torch.Generator) -> tuple[RayBatch, torch.Tensor]:
-        """:meth:`sample`'s batch and (n_rays,) the position of each ray's view in the split."""
-        flat = torch.randint(self.n_pixels, (n_rays,), generator=generator).to(self.images.device)
+    def _pixels(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         hw = self.height * self.width
         view, pix = flat // hw, flat % hw
-        row, col = pix // self.width, pix % self.width
+        return view, pix // self.width, pix % self.width
+
+    def draw(self, n_rays: int, generator: torch.Generator) -> tuple[RayBatch, torch.Tensor]:
+        """:meth:`sample`'s batch and (n_rays,) the position of each ray's view in the split."""
+        flat = torch.randint(self.n_pixels, (n_rays,), generator=generator)
+        if self.tiles is not None:  # redraw what fell in a tile (a few percent of the pixels: a round or two)
+            held = self.tiles.contains(*self._pixels(flat))
+            while bool(held.any()):
+                flat[held] = torch.randint(self.n_pixels, (int(held.sum()),), generator=generator)
+                held = self.tiles.contains(*self._pixels(flat))
+        view, row, col = (t.to(self.images.device) for t in self._pixels(flat))
+        return self._batch(view, row, col), view
+
+    def held_out(self, max_rays: int) -> RayBatch:
+        """The held-out tiles' pixels as rays with their target colours (every s-th row and column of each tile where
+        that keeps them within ``max_rays``, see :func:`~nerfmeta.fit.holdout.tile_pixels`)."""
+        if self.tiles is None:
+            raise ValueError("this sampler holds no tiles out")
+        view, row, col = (t.to(self.images.device) for t in tile_pixels(self.tiles, max_rays))
+        return self._batch(view, row, col)
+
+    def _batch(self, view: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> RayBatch:
         dtype = self.poses.dtype
         xy = torch.stack([col.to(dtype) + 0.5, row.to(dtype) + 0.5], -1)
         origins, dirs = camera_rays(self.poses[view], self.intrinsics[view], xy)
         target = self.images[view, row, col]
         alpha = None if self.alphas is None else self.alphas[view, row, col]
-        return RayBatch(*rays_in_space(self.ndc, origins, dirs, self.near, self.far), target, alpha), view
+        return RayBatch(*rays_in_space(self.ndc, origins, dirs, self.near, self.far), target, alpha)
 
 
 def view_rays(scene: Scene, view: int, device: torch.device | str) -> RayBatch:
