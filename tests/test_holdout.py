@@ -147,11 +147,24 @@ def test_without_patience_the_fit_runs_on_and_still_ends_with_its_best_parameter
 
 def test_a_fit_that_keeps_improving_ends_with_its_last_parameters(tiny_scene):
     scene, model = _scene_and_grid(tiny_scene)
-    config = FitConfig(iters=60, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=20)
+    config = FitConfig(iters=60, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=20,
+                       holdout_release=1.0)
     result = fit(model, scene, config, background=torch.ones(3))
     assert result.state.step == 60 and result.state.best.step == 60
     assert "holdout_best" not in result.state.decisions
     assert result.state.decisions["holdout_tiles"]["value"] == 5  # 0.17 of 32 px
+
+
+def test_a_fit_still_at_its_best_late_gives_its_tiles_back_to_training(tiny_scene):
+    scene, model = _scene_and_grid(tiny_scene)
+    config = FitConfig(iters=100, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=20,
+                       holdout_release=0.75)
+    result = fit(model, scene, config, background=torch.ones(3))
+    released = result.state.decisions["holdout_released"]
+    assert released["value"] == 80  # the first score at 3/4 of the fit, still the best
+    scores = [r.iter for r in result.history if r.holdout_psnr is not None]
+    assert scores == [20, 40, 60, 80]  # nothing scored, stopped or put back after it
+    assert result.state.best is None and "holdout_best" not in result.state.decisions
 
 
 def test_no_tiles_means_every_pixel_trained_on_and_no_scores(tiny_scene):

@@ -10,7 +10,8 @@ tiles, at least 8 (all of a 16-view scene at 96 px: 2.8 % of its pixels). The fi
 every ``holdout_every`` steps the fit renders them (a regular subsample of at most ``holdout_rays``) and pools their
 squared error into one PSNR. The fit keeps a copy of the parameters with the best held-out PSNR so far
 (:class:`BestSnapshot`; scores start again after the model grows), stops once ``patience`` steps pass without a better
-one and the last is ``patience_db`` below it, and then ends with the best copy.
+one and the last is ``patience_db`` below it, and then ends with the best copy. A fit still at its best score at
+``holdout_release`` (3/4) of its length has not overfitted: it gives the tiles back to training for the rest.
 
 Only fits of few views do this (``holdout_max_views``, 20): on 24- and 40-view scenes at 128 px the tiles' score
 flattened or fell by 0.2 dB while the test views' still rose by 0.5-0.8 dB, so stopping there cost up to 0.5 dB.

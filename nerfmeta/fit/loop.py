@@ -98,6 +98,10 @@ class FitConfig:
     """Stop once this many steps pass without a better held-out PSNR than the best so far, and the last score is
     ``patience_db`` below the best (0: never stop early; the fit still ends with the best parameters). Scores start
     again after the model changes its structure (a grid's growth), whose dip passes."""
+    holdout_release: float = bounded(0.75, low=0, high=1)
+    """At this fraction of the fit (its iterations or time budget), a fit whose held-out score is still at its best
+    (within ``patience_db``) gives the tiles back to training for the rest: it has not overfitted, so the pixels are worth
+    more as data than as a check (1: never; nothing is stopped or put back after it)."""
     patience_db: float = bounded(0.1, low=0)
     """How far below the best the last held-out score must be to stop early, or for the fit to end with the best
     parameters rather than its last: a plateau within it is noise, not a fall."""
@@ -266,6 +270,8 @@ def fit(
     device = background.device
     n_train = len(scene.splits.get("train", ()))
     few = config.holdout_max_views == 0 or n_train <= config.holdout_max_views
+    if state is not None and "holdout_released" in state.decisions:  # resumed after the tiles were given back
+        few = False
     tiles = place_tiles(n_train, scene.height, scene.width, config.holdout_tile, config.seed, config.holdout_rays) if few else None
     sampler = RaySampler(scene, "train", device, tiles)
     held = None if tiles is None else sampler.held_out(config.holdout_rays)
@@ -490,6 +496,14 @@ def fit(
         eval_notes.clear()
         if held is not None and state.step % config.holdout_every == 0:
             record.holdout_psnr = score_held_out()
+            if (config.holdout_release < 1 and fit_progress(config, state.step, state.time_s) >= config.holdout_release
+                    and state.holdout_psnr > state.best.psnr - config.patience_db):
+                notes_release = note_decisions([Decision("holdout_released", state.step, (
+                    f"step {state.step}: the held-out score is still at its best ({state.holdout_psnr:.2f} dB) at "
+                    f"{config.holdout_release:g} of the fit: the tiles are trained on from here, nothing is stopped or put back"),
+                    {"step": state.step, "holdout_psnr": round(state.holdout_psnr, 4)})])
+                record.event = "; ".join(m for m in (record.event, *notes_release) if m)
+                sampler.tiles, held, state.best = None, None, None
         last = (state.step >= config.iters or (config.time_budget_s is not None and state.time_s >= config.time_budget_s)
                 or out_of_patience())
         if last:
