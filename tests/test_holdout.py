@@ -246,3 +246,24 @@ def test_a_run_saved_before_held_out_tiles_resumes_training_on_every_pixel():
     assert FitConfig.from_json({"iters": 7, "holdout_tile": 0.17}).holdout_tile == 0.17
     assert RunConfig.from_json({"scene": "s", "fit": {"iters": 7}}).fit.holdout_tile == 0.0
     assert FitConfig().holdout_tile == 0.17  # new fits hold tiles out
+
+
+def test_a_fit_resumed_after_its_release_keeps_training_on_every_pixel(tiny_scene, tmp_path):
+    def config():
+        return RunConfig(scene=str(tiny_scene), model={"side": 12}, backbone="dense", renders=0, fit=FitConfig(
+            iters=40, batch_rays=256, eval_every=0, checkpoint_every=10, holdout_every=10, holdout_release=0.5,
+            final_lpips=False))
+
+    full = run_fit(config(), tmp_path / "full")
+
+    def kill_at_35(record, model, state):
+        if record.iter == 35:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        run_fit(config(), tmp_path / "killed", callbacks=[kill_at_35])
+    resumed = run_fit(config(), tmp_path / "killed", resume=True)  # from the checkpoint at 30, after the release at 20
+    assert full["decisions"]["holdout_released"]["value"] == 20
+    assert resumed["test_psnr"] == full["test_psnr"] and resumed["iters"] == 40
+    records = read_metrics(tmp_path / "killed" / "metrics.jsonl")
+    assert [r["iter"] for r in records if "holdout_psnr" in r] == [10, 20]
