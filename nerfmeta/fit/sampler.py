@@ -61,8 +61,8 @@ class RaySampler:
     """Draws random training pixels (uniformly over all pixels of all views of a split, less any held-out tiles).
 
     Rays are built per batch from the pose and intrinsics of each pixel's view, so memory holds
-    only the images, not one ray per pixel. With ``tiles`` (:func:`~nerfmeta.fit.holdout.place_tiles`, one per view
-    of the split) a draw that lands in a view's tile is drawn again, so the tiles' pixels are never trained on;
+    only the images, not one ray per pixel. With ``tiles`` (:func:`~nerfmeta.fit.holdout.place_tiles`, indexed by the
+    views' positions in the split; a fit may set them to None to give them back to training) a draw that lands in a view's tile is drawn again, so the tiles' pixels are never trained on;
     :meth:`held_out` gives them as rays to score.
     """
 
