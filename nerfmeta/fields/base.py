@@ -349,6 +349,19 @@ class RadianceModel(Field):
     def load_structure(self, structure: dict[str, Any]) -> None:
         """Reshape this model to ``structure`` so a state dict saved with it loads."""
 
+    def load_state(self, structure: dict[str, Any], tensors: dict[str, torch.Tensor]) -> None:
+        """Reshape this model to ``structure`` (:meth:`load_structure`) and load ``tensors`` (a state dict saved with
+        it, moved to the model's device): a checkpoint's model, or the fit's best held-out parameters.
+
+        Raises:
+            ValueError: a tensor the model has is missing from ``tensors``, or one there is not the model's.
+        """
+        self.load_structure(structure)
+        device = next(iter(self.state_dict().values())).device
+        missing, unexpected = self.load_state_dict({k: v.to(device) for k, v in tensors.items()}, strict=False)
+        if missing or unexpected:
+            raise ValueError(f"missing {missing}, unexpected {unexpected}")
+
     def freeze_first(self, k: int) -> list[str]:
         """Freeze the parameters of the first ``k`` layers (``requires_grad=False``); return their names.
 

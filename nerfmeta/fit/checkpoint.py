@@ -98,8 +98,7 @@ def restore_model(model: RadianceModel, checkpoint: Checkpoint) -> None:
     """Reshape ``model`` to the checkpoint's structure and load its tensors."""
     if model.backbone != checkpoint.backbone:
         raise NerfmetaError(f"checkpoint is for backbone {checkpoint.backbone!r}, not {model.backbone!r}")
-    model.load_structure(checkpoint.structure)
-    device = next(iter(model.state_dict().values())).device
-    missing, unexpected = model.load_state_dict({k: v.to(device) for k, v in checkpoint.model_state.items()}, strict=False)
-    if missing or unexpected:
-        raise NerfmetaError(f"checkpoint does not match the model: missing {missing}, unexpected {unexpected}")
+    try:
+        model.load_state(checkpoint.structure, checkpoint.model_state)
+    except ValueError as err:
+        raise NerfmetaError(f"checkpoint does not match the model: {err}") from None

@@ -124,11 +124,9 @@ class BestSnapshot:
         return cls(step, psnr, model.structure(), {k: v.detach().clone() for k, v in model.state_dict().items()})
 
     def restore(self, model: RadianceModel) -> None:
-        """Put the snapshot's structure and parameters back into ``model``."""
-        model.load_structure(self.structure)
-        missing, unexpected = model.load_state_dict(self.tensors, strict=False)
-        if missing or unexpected:
-            raise RuntimeError(f"best snapshot does not match the model: missing {missing}, unexpected {unexpected}")
+        """Put the snapshot's structure and parameters back into ``model`` (as a checkpoint's are:
+        :meth:`~nerfmeta.fields.base.RadianceModel.load_state`)."""
+        model.load_state(self.structure, self.tensors)
 
     def meta(self) -> dict[str, Any]:
         """The JSON part kept in a checkpoint (the tensors go beside it)."""
