@@ -237,6 +237,11 @@ def fit_progress(config: FitConfig, step: int, time_s: float) -> float:
     return min(1.0, progress)
 
 
+def joined_events(*messages: str | None) -> str | None:
+    """A record's ``event``: the non-empty messages joined with "; " (None if there are none)."""
+    return "; ".join(m for m in messages if m) or None
+
+
 def lr_scale(config: FitConfig, step: int, time_s: float) -> float:
     """Exponential decay factor at the current progress (:func:`fit_progress`)."""
     return config.lr_decay ** fit_progress(config, step, time_s)
@@ -491,7 +496,7 @@ def fit(
             train_psnr=float(mse_to_psnr(mse.detach().clamp(min=MSE_FLOOR))),  # 100 dB, not inf, for a perfect batch
             samples_per_ray=out.samples_evaluated / len(batch),
             lr_scale=scale,
-            event="; ".join(m for m in (*notes, event.message, *rollbacks, *eval_notes) if m) or None,
+            event=joined_events(*notes, event.message, *rollbacks, *eval_notes),
         )
         eval_notes.clear()
         if held is not None and state.step % config.holdout_every == 0:
@@ -502,12 +507,12 @@ def fit(
                     f"step {state.step}: the held-out score is still at its best ({state.holdout_psnr:.2f} dB) at "
                     f"{config.holdout_release:g} of the fit: the tiles are trained on from here, nothing is stopped or put back"),
                     {"step": state.step, "holdout_psnr": round(state.holdout_psnr, 4)})])
-                record.event = "; ".join(m for m in (record.event, *notes_release) if m)
+                record.event = joined_events(record.event, *notes_release)
                 sampler.tiles, held, state.best = None, None, None
         last = (state.step >= config.iters or (config.time_budget_s is not None and state.time_s >= config.time_budget_s)
                 or out_of_patience())
         if last:
-            record.event = "; ".join(m for m in (record.event, *end_with_best()) if m) or None
+            record.event = joined_events(record.event, *end_with_best())
         if test_views and last:
             final = final_eval()
             record.test_psnr = final.psnr
