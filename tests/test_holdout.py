@@ -112,18 +112,19 @@ def _spoiler(start: int, end: int, seen: dict):
     return spoil
 
 
-def _scene_and_grid(tiny_scene):
+def _fit_grid(tiny_scene, callbacks=(), **options):
+    """A dense grid (seeded) fitted to the tiny scene with ``options`` of :class:`FitConfig` over quiet defaults:
+    the model and the fit's result."""
     scene = load_scene(tiny_scene)
     torch.manual_seed(0)
-    return scene, DenseGrid(DenseGridConfig(side=12), scene.bounds)
+    model = DenseGrid(DenseGridConfig(side=12), scene.bounds)
+    config = FitConfig(**{"batch_rays": 256, "eval_every": 0, "final_ssim": False, "final_lpips": False, **options})
+    return model, fit(model, scene, config, background=torch.ones(3), callbacks=list(callbacks))
 
 
 def test_the_fit_stops_patience_steps_after_its_best_held_out_score_and_ends_with_those_parameters(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)
     seen: dict = {}
-    config = FitConfig(iters=200, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False,
-                       holdout_every=10, patience=30)
-    result = fit(model, scene, config, background=torch.ones(3), callbacks=[_spoiler(40, 70, seen)])
+    model, result = _fit_grid(tiny_scene, [_spoiler(40, 70, seen)], iters=200, holdout_every=10, patience=30)
     assert result.state.step == 70  # scored at 50, 60, 70 below step 40's score; 30 steps after it, the fit stops
     assert "step 40" in result.state.stop_reason and "30 steps" in result.state.stop_reason
     assert all(torch.equal(v, seen["best"][k]) for k, v in model.state_dict().items())
@@ -136,30 +137,21 @@ def test_the_fit_stops_patience_steps_after_its_best_held_out_score_and_ends_wit
 
 
 def test_without_patience_the_fit_runs_on_and_still_ends_with_its_best_parameters(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)
     seen: dict = {}
-    config = FitConfig(iters=90, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False,
-                       holdout_every=10, patience=0)
-    result = fit(model, scene, config, background=torch.ones(3), callbacks=[_spoiler(40, 90, seen)])
+    model, result = _fit_grid(tiny_scene, [_spoiler(40, 90, seen)], iters=90, holdout_every=10, patience=0)
     assert result.state.step == 90 and result.state.best.step == 40
     assert all(torch.equal(v, seen["best"][k]) for k, v in model.state_dict().items())
 
 
 def test_a_fit_that_keeps_improving_ends_with_its_last_parameters(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)
-    config = FitConfig(iters=60, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=20,
-                       holdout_release=1.0)
-    result = fit(model, scene, config, background=torch.ones(3))
+    _, result = _fit_grid(tiny_scene, iters=60, holdout_every=20, holdout_release=1.0)
     assert result.state.step == 60 and result.state.best.step == 60
     assert "holdout_best" not in result.state.decisions
     assert result.state.decisions["holdout_tiles"]["value"] == 5  # 0.17 of 32 px
 
 
 def test_a_fit_still_at_its_best_late_gives_its_tiles_back_to_training(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)
-    config = FitConfig(iters=100, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=20,
-                       holdout_release=0.75)
-    result = fit(model, scene, config, background=torch.ones(3))
+    _, result = _fit_grid(tiny_scene, iters=100, holdout_every=20, holdout_release=0.75)
     released = result.state.decisions["holdout_released"]
     assert released["value"] == 80  # the first score at 3/4 of the fit, still the best
     scores = [r.iter for r in result.history if r.holdout_psnr is not None]
@@ -168,10 +160,8 @@ def test_a_fit_still_at_its_best_late_gives_its_tiles_back_to_training(tiny_scen
 
 
 def test_no_tiles_means_every_pixel_trained_on_and_no_scores(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)
-    config = FitConfig(iters=30, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_tile=0.0,
-                       holdout_every=10, patience=10)
-    result = fit(model, scene, config, background=torch.ones(3), callbacks=[_spoiler(10, 1000, {})])
+    _, result = _fit_grid(tiny_scene, [_spoiler(10, 1000, {})], iters=30, holdout_tile=0.0, holdout_every=10,
+                          patience=10)
     assert result.state.step == 30 and result.state.best is None
     assert all(r.holdout_psnr is None for r in result.history)
     assert not {"holdout_tiles", "holdout_best"} & set(result.state.decisions)
@@ -222,10 +212,8 @@ def test_the_concave_preset_trains_on_every_pixel(tiny_scene, tmp_path):
 
 
 def test_a_fit_of_more_views_than_holdout_max_views_trains_on_every_pixel_and_says_so(tiny_scene):
-    scene, model = _scene_and_grid(tiny_scene)  # 8 training views
-    config = FitConfig(iters=30, batch_rays=256, eval_every=0, final_ssim=False, final_lpips=False, holdout_every=10,
-                       patience=10, holdout_max_views=7)
-    result = fit(model, scene, config, background=torch.ones(3), callbacks=[_spoiler(10, 30, {})])
+    _, result = _fit_grid(tiny_scene, [_spoiler(10, 30, {})], iters=30, holdout_every=10, patience=10,
+                          holdout_max_views=7)  # 8 training views
     assert result.state.step == 30 and result.state.best is None
     decision = result.state.decisions["holdout_tiles"]
     assert decision["value"] is False and "8 training views > holdout_max_views=7" in decision["reason"]
