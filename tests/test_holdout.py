@@ -10,6 +10,7 @@ import torch
 
 from nerfmeta.cli import main
 from nerfmeta.data import load_scene
+from nerfmeta.data.scene_type import SCENE_TYPES, SceneType
 from nerfmeta.fields.dense_grid import DenseGrid, DenseGridConfig
 from nerfmeta.fit.holdout import MIN_TILED_VIEWS, place_tiles, tile_pixels, tile_side, tiled_views
 from nerfmeta.fit.loop import FitConfig, fit
@@ -112,10 +113,11 @@ def _spoiler(start: int, end: int, seen: dict):
     return spoil
 
 
-def _fit_grid(tiny_scene, callbacks=(), **options):
-    """A dense grid (seeded) fitted to the tiny scene with ``options`` of :class:`FitConfig` over quiet defaults:
-    the model and the fit's result."""
+def _fit_grid(tiny_scene, callbacks=(), kind="object", **options):
+    """A dense grid (seeded) fitted to the tiny scene, taken as a scene of ``kind``, with ``options`` of
+    :class:`FitConfig` over quiet defaults: the model and the fit's result."""
     scene = load_scene(tiny_scene)
+    scene = dataclasses.replace(scene, scene_type=SceneType(kind, "given by the test", detected=False))
     torch.manual_seed(0)
     model = DenseGrid(DenseGridConfig(side=12), scene.bounds)
     config = FitConfig(**{"batch_rays": 256, "eval_every": 0, "final_ssim": False, "final_lpips": False, **options})
@@ -219,8 +221,24 @@ def test_a_fit_of_more_views_than_holdout_max_views_trains_on_every_pixel_and_sa
     assert decision["value"] is False and "8 training views > holdout_max_views=7" in decision["reason"]
 
 
+@pytest.mark.parametrize("kind", ["forward", "unbounded"])
+def test_a_fit_of_another_kind_than_an_object_trains_on_every_pixel_and_says_so(tiny_scene, kind):
+    _, result = _fit_grid(tiny_scene, [_spoiler(10, 30, {})], kind=kind, iters=30, holdout_every=10, patience=10)
+    assert result.state.step == 30 and result.state.best is None
+    decision = result.state.decisions["holdout_tiles"]
+    assert decision["value"] is False and f"a {kind} scene, not one of holdout_scene_types=object" in decision["reason"]
+
+
+def test_a_kind_named_in_holdout_scene_types_holds_tiles_out_and_stops(tiny_scene):
+    _, result = _fit_grid(tiny_scene, [_spoiler(10, 60, {})], kind="forward", holdout_scene_types=("object", "forward"),
+                          iters=60, holdout_every=10, patience=20)
+    assert result.state.step < 60 and result.state.best is not None
+    assert result.state.decisions["holdout_tiles"]["value"] > 0
+
+
 @pytest.mark.parametrize("args,needle", [(["--holdout-tile", "0.6"], "holdout"), (["--patience", "-1"], "patience"),
-                                         (["--holdout-every", "0"], "holdout")])
+                                         (["--holdout-every", "0"], "holdout"),
+                                         (["--holdout-scene-types", "object,indoor"], "holdout-scene-types")])
 def test_bad_holdout_options_exit_2_with_one_line(tiny_scene, tmp_path, capsys, args, needle):
     out = tmp_path / "run"
     assert main(["fit", str(tiny_scene), "--out", str(out), "--iters", "2", *args]) == 2
@@ -234,6 +252,13 @@ def test_a_run_saved_before_held_out_tiles_resumes_training_on_every_pixel():
     assert FitConfig.from_json({"iters": 7, "holdout_tile": 0.17}).holdout_tile == 0.17
     assert RunConfig.from_json({"scene": "s", "fit": {"iters": 7}}).fit.holdout_tile == 0.0
     assert FitConfig().holdout_tile == 0.17  # new fits hold tiles out
+    assert FitConfig().holdout_scene_types == ("object",)  # ... of objects
+
+
+def test_a_run_saved_before_scene_kinds_were_chosen_resumes_with_tiles_in_any_kind_and_new_ones_load_back_equal():
+    assert FitConfig.from_json({"iters": 7, "holdout_tile": 0.17}).holdout_scene_types == SCENE_TYPES
+    config = FitConfig(holdout_scene_types=("object", "forward"))
+    assert FitConfig.from_json(json.loads(json.dumps(dataclasses.asdict(config)))) == config
 
 
 def test_a_fit_resumed_after_its_release_keeps_training_on_every_pixel(tiny_scene, tmp_path):
