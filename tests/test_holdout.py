@@ -221,12 +221,12 @@ def test_a_fit_of_more_views_than_holdout_max_views_trains_on_every_pixel_and_sa
     assert decision["value"] is False and "8 training views > holdout_max_views=7" in decision["reason"]
 
 
-@pytest.mark.parametrize("kind", ["forward", "unbounded"])
-def test_a_fit_of_another_kind_than_an_object_trains_on_every_pixel_and_says_so(tiny_scene, kind):
+@pytest.mark.parametrize("kind,article", [("forward", "a"), ("unbounded", "an")])
+def test_a_fit_of_another_kind_than_an_object_trains_on_every_pixel_and_says_so(tiny_scene, kind, article):
     _, result = _fit_grid(tiny_scene, [_spoiler(10, 30, {})], kind=kind, iters=30, holdout_every=10, patience=10)
     assert result.state.step == 30 and result.state.best is None
     decision = result.state.decisions["holdout_tiles"]
-    assert decision["value"] is False and f"a {kind} scene, not one of holdout_scene_types=object" in decision["reason"]
+    assert decision["value"] is False and f"{article} {kind} scene, not one of holdout_scene_types=object" in decision["reason"]
 
 
 def test_a_kind_named_in_holdout_scene_types_holds_tiles_out_and_stops(tiny_scene):

@@ -433,7 +433,7 @@ def fit(
         note_decisions([Decision("final_lpips", False, lpips_skip, {"height": scene.height, "width": scene.width})])
 
     if tiles is None and not (few and tiled_kind) and config.holdout_tile > 0 and "holdout_tiles" not in state.decisions:
-        why = (f"a {kind} scene, not one of holdout_scene_types={','.join(config.holdout_scene_types) or '()'}"
+        why = (f"{'an' if kind[0] in 'aeiou' else 'a'} {kind} scene, not one of holdout_scene_types={','.join(config.holdout_scene_types) or '()'}"
                if not tiled_kind else f"{n_train} training views > holdout_max_views={config.holdout_max_views}")
         note_decisions([Decision("holdout_tiles", False, f"{why}: no held-out tiles, every pixel trained on and every "
                                  "step run", {"views": n_train, "max_views": config.holdout_max_views, "kind": kind})])
