@@ -11,8 +11,9 @@ its per-scene decisions from training rays (:meth:`~nerfmeta.fields.base.Radianc
 Decisions are logged, noted in the next ``StepRecord.event`` and kept in ``FitState.decisions``.
 
 A fit of few views (``FitConfig.holdout_max_views``) of an object (``FitConfig.holdout_scene_types``) holds a square
-tile of its training views out of training (:mod:`nerfmeta.fit.holdout`); their PSNR every ``holdout_every`` steps (counted in ``time_s``) picks the parameters
-the fit ends with and stops it when they have stopped improving (``patience``).
+tile of its training views out of training (:mod:`nerfmeta.fit.holdout`); their PSNR every ``holdout_every`` steps
+(counted in ``time_s``) picks the parameters the fit ends with and stops it when they have stopped improving
+(``patience``).
 
 A divergence guard (:mod:`nerfmeta.fit.guard`, ``FitConfig.guard``) checks every step's loss and
 gradients; a bad step is rolled back to the last good snapshot, the learning rates are lowered for
@@ -291,8 +292,9 @@ def fit(
     tiled_kind = kind in config.holdout_scene_types
     if state is not None and "holdout_released" in state.decisions:  # resumed after the tiles were given back
         few = False
+    tiled = few and tiled_kind
     tiles = (place_tiles(n_train, scene.height, scene.width, config.holdout_tile, config.seed, config.holdout_rays)
-             if few and tiled_kind else None)
+             if tiled else None)
     sampler = RaySampler(scene, "train", device, tiles)
     held = None if tiles is None else sampler.held_out(config.holdout_rays)
     test_views = scene.splits.get("test", ())
@@ -434,7 +436,7 @@ def fit(
         (log.warning if lpips_skip.startswith("LPIPS unavailable") else log.info)("%s", lpips_skip)
         note_decisions([Decision("final_lpips", False, lpips_skip, {"height": scene.height, "width": scene.width})])
 
-    if tiles is None and not (few and tiled_kind) and config.holdout_tile > 0 and "holdout_tiles" not in state.decisions:
+    if tiles is None and not tiled and config.holdout_tile > 0 and "holdout_tiles" not in state.decisions:
         kinds = ",".join(config.holdout_scene_types) or "()"
         why = (f"{'an' if kind[0] in 'aeiou' else 'a'} {kind} scene, not one of holdout_scene_types={kinds}" if not tiled_kind
                else f"{n_train} training views > holdout_max_views={config.holdout_max_views}")
