@@ -31,14 +31,14 @@ sys.path.insert(0, str(ROOT))
 import nerfmeta  # noqa: E402,F401 - before torch, which then spins its OpenMP workers briefly (nerfmeta/__init__.py)
 import torch  # noqa: E402
 
-from nerfmeta.collection import generate  # noqa: E402
-from nerfmeta.collection.categories import sample_shape  # noqa: E402
-from nerfmeta.collection.generate import CollectionConfig, SceneRecord, camera_poses, collection_document, write_scene  # noqa: E402
+from nerfmeta.collection.generate import (CollectionConfig, SceneRecord, camera_poses, collection_document,  # noqa: E402
+                                          plan_collection, write_scene)
 from nerfmeta.collection.render import render_views  # noqa: E402
 from nerfmeta.collection.shapes import Revolution, Shape  # noqa: E402
 from nerfmeta.geometry.metrics import compare_surfaces  # noqa: E402
 from nerfmeta.geometry.truth import sample_sdf_surface  # noqa: E402
 from nerfmeta.io import write_json  # noqa: E402
+from nerfmeta.runfolder import run_folder  # noqa: E402
 
 CHECKER_FREQUENCY = 5.65
 """Cycles per shape unit of the checkerboard put on a mug (the seed-7 mug's own, whose wall fits landed best)."""
@@ -98,16 +98,16 @@ def training_views(record: SceneRecord, config: CollectionConfig) -> torch.Tenso
 def mug_record(seed: int, texture: str) -> tuple[SceneRecord, CollectionConfig]:
     """The seed's mug (``make-collection``'s plan) with its texture set, and the collection's config."""
     config = CollectionConfig(categories=("mug",), scenes_per_category=1, views=40, test_views=8, resolution=128, seed=seed)
-    plain = generate.plan_collection(config)[0]
-    shape = retextured(sample_shape("mug", generate.scene_rng(seed, "mug", 0, 0)), texture)
-    return dataclasses.replace(plain, shape=shape), config
+    record = plan_collection(config)[0]
+    return dataclasses.replace(record, shape=retextured(record.shape, texture)), config
 
 
 def write_collection(record: SceneRecord, config: CollectionConfig, out: Path) -> None:
-    """``record`` as a one-scene collection in ``out`` (a new folder), as ``make-collection`` writes one."""
-    out.mkdir(parents=True, exist_ok=False)
-    write_scene(record, config, out)
-    write_json(out / "collection.json", collection_document(config, [record]))
+    """``record`` as a one-scene collection in ``out``, as ``make-collection`` writes one: built aside and swapped in
+    when complete, and never over a folder the project did not write (:func:`~nerfmeta.runfolder.run_folder`)."""
+    with run_folder(out, "collection", aside=True) as run:
+        write_scene(record, config, run.dir)
+        write_json(run.dir / "collection.json", collection_document(config, [record]))
 
 
 def main(argv: list[str] | None = None) -> int:
