@@ -8,7 +8,7 @@ second of every view, their median, the test PSNR and the samples evaluated per 
 
 Usage::
 
-    .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X]
+    .venv/bin/python scripts/bench_render.py RUN [--views N] [--profile] [--chunk N] [--stop-eps X] [--phases N]
         [--orbit N --out DIR] [--weights] [--device DEV]
 
 Renders use torch's thread count (one worker thread per torch thread on a CPU, see
@@ -106,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", action="store_true", help="print the torch profiler's table for the first view")
     parser.add_argument("--stop-eps", type=float, default=None,
                         help="grid: test-time early termination threshold (0: the one-pass path without it; default: the run's)")
+    parser.add_argument("--phases", type=int, default=None,
+                        help="grid: marches a test render averages (render_phases; default: the run's)")
     parser.add_argument("--orbit", type=int, default=0, help="also write N frames orbiting the scene's centre to --out")
     parser.add_argument("--out", type=Path, default=None, help="folder for the orbit frames (PNG)")
     parser.add_argument("--weights", action="store_true",
@@ -114,11 +116,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         config, scene, model = load_run(args.run, args.device)
+        if args.stop_eps is not None:
+            model.config = dataclasses.replace(model.config, render_stop_eps=args.stop_eps)
+        if args.phases is not None:
+            model.config = dataclasses.replace(model.config, render_phases=args.phases)
     except ConfigError as err:
         print(f"bench_render: error: {err}", file=sys.stderr)
         return 2
-    if args.stop_eps is not None:
-        model.config = dataclasses.replace(model.config, render_stop_eps=args.stop_eps)
     if args.orbit:
         write_orbit(model, scene, torch.tensor(config.background, dtype=torch.float32, device=args.device), args.orbit, args.out)
     views = scene.split_indices("test")

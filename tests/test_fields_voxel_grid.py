@@ -28,7 +28,7 @@ from nerfmeta.fields.grid_ops import (
     total_variation,
     trilinear_gather,
 )
-from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig, growth_mode
+from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig, growth_mode, march_phases
 from nerfmeta.fit.loop import FitConfig, FitState, fit
 from nerfmeta.fit.sampler import view_rays
 from nerfmeta.metrics import mse_to_psnr
@@ -192,6 +192,43 @@ def test_test_time_render_equals_the_training_path(stages, scene):
         torch.testing.assert_close(fast.depth, slow.depth.detach(), rtol=1e-5, atol=1e-5)
 
 
+def test_march_phases_spread_evenly_and_symmetrically_over_a_step():
+    assert march_phases(1) == (0.5,)
+    assert march_phases(2) == (0.25, 0.75)
+    assert march_phases(4) == (0.125, 0.375, 0.625, 0.875)
+    with pytest.raises(ValueError, match="count 0"):
+        march_phases(0)
+
+
+def test_a_test_render_of_n_marches_is_their_mean_and_nearer_the_jittered_average(stages, scene):
+    """``render_phases`` n: a test render is the mean of the n single marches shifted by :func:`march_phases`
+    (colour, opacity, depth; samples summed), and closer to the average over many shifts (what training's random
+    jitter fits) than the one march at the bins' middles; training renders are not averaged."""
+    model = copy.deepcopy(stages.final)
+    model.config = dataclasses.replace(model.config, stepsize=1.0)  # one-voxel steps, where the shift shows most
+    rays = _test_view(scene)
+
+    def march(phase):
+        return model.render_plan(rays, model.sample(rays, train=False, generator=None, phase=phase), background=WHITE)
+
+    with torch.no_grad():
+        one = model(rays, background=WHITE)
+        assert torch.equal(one.rgb, march(0.5).rgb)
+        parts = [march(p) for p in (0.25, 0.75)]
+        dense = torch.stack([march(p).rgb for p in march_phases(32)]).mean(0)
+        model.config = dataclasses.replace(model.config, render_phases=2)
+        two = model(rays, background=WHITE)
+    for name in ("rgb", "acc", "depth"):
+        torch.testing.assert_close(getattr(two, name), (getattr(parts[0], name) + getattr(parts[1], name)) / 2)
+    assert two.samples_evaluated == parts[0].samples_evaluated + parts[1].samples_evaluated
+    assert ((two.rgb - dense) ** 2).mean() < 0.5 * ((one.rgb - dense) ** 2).mean()
+    train = []
+    for count in (2, 1):
+        model.config = dataclasses.replace(model.config, render_phases=count)
+        train.append(model(rays[:256], background=WHITE, train=True, generator=torch.Generator().manual_seed(0)).rgb)
+    assert torch.equal(train[0], train[1])
+
+
 # -- config ----------------------------------------------------------------------------------
 
 
@@ -211,6 +248,9 @@ def test_auto_sizes_must_be_resolved_and_bad_values_are_refused():
     with pytest.raises(ConfigError, match="growth_steps"):
         VoxelGridConfig(growth_steps=(200, 100))
     assert VoxelGridConfig(growth_steps=[10, 20]).growth_steps == (10, 20)  # JSON lists load back
+    for bad in (0, 1.5):
+        with pytest.raises(ConfigError, match="render_phases"):
+            VoxelGridConfig(render_phases=bad)
 
 
 # -- model -----------------------------------------------------------------------------------

@@ -86,6 +86,10 @@ def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forwar
     assert RunConfig(scene="x").model_config(forward).coarse_alpha_init == 1e-2
     assert RunConfig(scene="x", model={"coarse_iters": 7}).model_config(forward).coarse_iters == 7
     assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).coarse_iters == 100
+    # one-voxel steps: test renders average two marches (render_phases), objects one
+    assert RunConfig(scene="x").model_config(forward).render_phases == 2
+    assert RunConfig(scene="x", model={"render_phases": 1}).model_config(forward).render_phases == 1
+    assert RunConfig(scene="x").model_config(load_scene(tiny_scene)).render_phases == 1
 
 
 def test_a_forward_grid_has_a_quarter_voxel_per_pixel_and_an_object_grid_keeps_its_own(forward_scene, tiny_scene):

@@ -8,6 +8,7 @@ through frozen layers, and the optional evaluation work (SSIM, renders).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -105,6 +106,15 @@ def test_auto_measures_and_applies_the_decision(scene, thres_db, expected):
     else:  # the fold keeps the picture up to interpolating the MLP's output instead of its input
         assert (after - before).abs().mean() < 0.01
     assert model.decide(_probe(scene), background=WHITE) == []  # decided once
+
+
+def test_the_trial_measures_one_march_whatever_the_test_renders_average(scene):
+    """``render_phases`` shapes evaluation and videos only: the view trial's two errors are the same with it at 1 or 2."""
+    model = _trial_done(scene)
+    twin = copy.deepcopy(model)
+    twin.config = dataclasses.replace(twin.config, render_phases=2)
+    (a,), (b,) = (m.decide(_probe(scene), background=WHITE) for m in (model, twin))
+    assert (a.evidence["mse_view"], a.evidence["mse_view_averaged"]) == (b.evidence["mse_view"], b.evidence["mse_view_averaged"])
 
 
 def test_folding_is_exact_at_the_voxel_corners(scene):

@@ -117,6 +117,9 @@ def test_unbounded_scenes_march_one_voxel_steps_and_set_still_wins(scenes):
     assert unbounded.stepsize == 1.0
     assert run.model_config(scenes["auto"]).stepsize == 0.5
     assert RunConfig(scene="x", backbone="grid", model={"stepsize": 0.5}).model_config(scenes["unbounded"]).stepsize == 0.5
+    # and its test renders average two marches half a step apart (render_phases), an object's one
+    assert unbounded.render_phases == 2 and run.model_config(scenes["auto"]).render_phases == 1
+    assert RunConfig(scene="x", backbone="grid", model={"render_phases": 1}).model_config(scenes["unbounded"]).render_phases == 1
     model = _model(unbounded, scenes["unbounded"])  # a new grid: raw density 0 everywhere
     alpha = model.alpha_per_step(model.bounds.mean(0, keepdim=True).expand(4, 3))
     torch.testing.assert_close(alpha, torch.full_like(alpha, unbounded.coarse_alpha_init))

@@ -287,7 +287,19 @@ class RadianceModel(Field):
         view_dirs: torch.Tensor | None = None,
     ) -> RenderOutput:
         """Estimator, field and compositor; ``view_dirs`` (n_rays, 3) replaces the rays' directions for colour."""
-        plan = self.sample(rays, train=train, generator=generator)
+        return self.render_plan(rays, self.sample(rays, train=train, generator=generator), background=background,
+                                train=train, view_dirs=view_dirs)
+
+    def render_plan(
+        self,
+        rays: RayBatch,
+        plan: SamplingPlan,
+        *,
+        background: torch.Tensor,
+        train: bool = False,
+        view_dirs: torch.Tensor | None = None,
+    ) -> RenderOutput:
+        """Field and compositor over the samples of ``plan`` (see :meth:`render`)."""
         samples = plan.samples
         sigma, embedding = self.get_density(samples.points(rays.origins, rays.directions))
         directions = rays.directions if view_dirs is None else view_dirs

@@ -150,7 +150,7 @@ empty-space skipping) so its parameter set never changes."""
 
 
 FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0,
-                                    "voxels_per_pixel": 0.25, "lr_density": 0.3}
+                                    "voxels_per_pixel": 0.25, "lr_density": 0.3, "render_phases": 2}
 """Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them).
 
 - ``voxels_per_pixel`` 0.25 (DirectVoxGO's LLFF ratio: 256^3 voxels for 1008-pixel-wide images; 40^3 at
@@ -164,12 +164,14 @@ FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-
 - Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
   (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
   coarse steps find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config.
+- ``render_phases`` 2: with one-voxel steps a test render at the bins' middles shows the field's aliasing (see
+  the field's documentation).
 
 Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1: no change, 1.0: worse)
 and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
-UNBOUNDED_DEFAULTS: dict[str, Any] = {"stepsize": 1.0}
+UNBOUNDED_DEFAULTS: dict[str, Any] = {"stepsize": 1.0, "render_phases": 2}
 """Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
 
 (``view_dependent``: the field's default, the per-scene trial ``"auto"``, was decided for these captures first, in
@@ -188,7 +190,9 @@ the walk video's sharpness is a matter of steps (a GPU fit of beer went from sof
 1000-2000), and half the samples a ray make each step about 1.6x as fast. On beer's 120-s fit: 924-951 steps instead
 of 563-574, 27.56 dB on the nine held-out frames instead of 27.43 (medians of three), LPIPS 0.32 against 0.36, a
 visibly sharper walk, and test renders at 106k rays/s instead of 62k (103 samples a ray instead of 203;
-BENCHMARKS.md, #16 session 27). Measured on beer only (the one unbounded capture here), on this CPU only."""
+BENCHMARKS.md, #16 session 27). Measured on beer only (the one unbounded capture here), on this CPU only.
+
+``render_phases`` 2: as for forward-facing scenes (one-voxel steps)."""
 
 
 @dataclass(frozen=True)
@@ -291,6 +295,15 @@ class VoxelGridConfig:
     """Test-time renders (evaluation, videos) stop each ray once its transmittance falls below this, marching and evaluating ``render_round_samples`` samples of the rays still alive at a time (0: off, the one-pass path). Training renders never stop early. Off by default: the models a few minutes' fit gives are semi-transparent, so 1e-4 cut 0-6 % of the samples and the rounds' second density lookup made renders 0-15 % slower (beer and lego fits, BENCHMARKS.md #16)."""
     render_round_samples: int = 32
     """Samples per ray marched and evaluated at a time in test-time renders (see ``render_stop_eps``)."""
+    render_phases: int = 1
+    """Test-time renders (evaluation, videos) average the colours of this many marches, their samples
+    (i + 0.5) / n of a step into their bins (i < n; 1: one march at the bins' middles). Training jitters
+    each ray's samples by a random fraction of a step, so the field learns to render well *on average over that
+    shift*, not at any one shift; with one-voxel steps (forward-facing and unbounded scenes) one march at
+    the middles shows the difference as a fine crosshatch over walls and floors. Two marches average it away
+    at twice the samples (``samples_evaluated`` counts both): on 2000-step fits of beer +0.14 dB on each of its
+    nine held-out frames, on a 3000-step fit of a generated forward-facing scene +0.19 dB; on lego (an object,
+    half-voxel steps) +0.01 dB, so objects keep 1 (BENCHMARKS.md #16, session 46)."""
     shell: float = 1.0
     """``contracted``: width of the shell holding everything outside the inner box, in inner-box half-sides (1: mip-NeRF 360's ``2 - 1/|x|``)."""
 
@@ -332,6 +345,7 @@ class VoxelGridConfig:
             ("shell", 0.0 < self.shell < math.inf, "use a positive width, e.g. 1"),
             ("render_stop_eps", 0.0 <= self.render_stop_eps < 1.0, "use a value in [0, 1), e.g. 1e-4"),
             ("render_round_samples", self.render_round_samples >= 1, "use 1 or more, e.g. 32"),
+            ("render_phases", isinstance(self.render_phases, int) and self.render_phases >= 1, "use 1 or more, e.g. 2"),
         )
         for name, ok, hint in checks:
             if not ok:
@@ -409,6 +423,14 @@ class ColorMLP(nn.Module):
         for lin in self.linears[1:]:
             x = lin(F.relu(x, inplace=inplace))
         return x
+
+
+def march_phases(count: int) -> tuple[float, ...]:
+    """Where a test-time march's samples sit in their bins, one entry per march: ``(i + 0.5) / count``, evenly
+    spread over the step and symmetric about its middle (``(0.5,)`` for one march)."""
+    if count < 1:
+        raise ValueError(f"count {count}: use 1 or more marches")
+    return tuple((i + 0.5) / count for i in range(count))
 
 
 def softplus_inverse(y: torch.Tensor) -> torch.Tensor:
@@ -718,10 +740,11 @@ class VoxelGrid(RadianceModel):
         for first in range(0, len(rays), 8192):
             batch = rays[first : first + 8192]
             target = batch.target
-            err_view += float(((self(batch, background=background).rgb - target) ** 2).sum())
+            err_view += float(((self.render(batch, background=background, phases=1).rgb - target) ** 2).sum())
             others = [batch.directions[torch.randperm(len(batch), generator=gen).to(target.device)]
                       for _ in range(cfg.view_probe_dirs)]
-            averaged = torch.stack([self.render(batch, background=background, view_dirs=d).rgb for d in others]).mean(0)
+            averaged = torch.stack([self.render(batch, background=background, view_dirs=d, phases=1).rgb
+                                    for d in others]).mean(0)
             err_avg += float(((averaged - target) ** 2).sum())
         gain = 10.0 * math.log10(max(err_avg, 1e-12) / max(err_view, 1e-12))
         self.view_dependent = gain >= cfg.view_gain_db
@@ -834,14 +857,16 @@ class VoxelGrid(RadianceModel):
         self.occupancy.prune(self.alpha_per_step, self.config.mask_cache_thres, dilation=1)
 
     # ----- rendering: the estimator and the field (the base class composites) ---------------------
-    def sample(self, rays: RayBatch, *, train: bool, generator: torch.Generator | None) -> SamplingPlan:
-        """March every ``stepsize`` voxels through the stage's box, skipping the cache's empty voxels (fine stage)."""
+    def sample(self, rays: RayBatch, *, train: bool, generator: torch.Generator | None,
+               phase: float = 0.5) -> SamplingPlan:
+        """March every ``stepsize`` voxels through the stage's box, skipping the cache's empty voxels (fine stage);
+        each ray's samples sit a random fraction of a step into their bins in training, ``phase`` of one at test time."""
         cfg = self.config
         n, dtype, device = len(rays), rays.origins.dtype, rays.origins.device
         if train:
             jitter = torch.rand(n, generator=generator, dtype=dtype, device="cpu").to(device)
         else:
-            jitter = torch.full((n,), 0.5, dtype=dtype, device=device)
+            jitter = torch.full((n,), phase, dtype=dtype, device=device)
         fine = self.stage == "fine"
         stop = 0.0 if train else cfg.render_stop_eps  # test time only: training sees every sample
         samples = self.occupancy.sampling(rays.origins, rays.directions, rays.near, rays.far, step=cfg.stepsize * self.voxel,
@@ -849,6 +874,20 @@ class VoxelGrid(RadianceModel):
                                           sigma_fn=(lambda points, _: self.get_density(points)[0]) if stop > 0 else None,
                                           early_stop_eps=stop, round_samples=cfg.render_round_samples)
         return SamplingPlan(samples, cfg.fast_color_thres if fine else cfg.coarse_fast_color_thres)
+
+    def render(self, rays: RayBatch, *, background: torch.Tensor, train: bool = False,
+               generator: torch.Generator | None = None, view_dirs: torch.Tensor | None = None,
+               phases: int | None = None) -> RenderOutput:
+        """The shared render; at test time the mean of ``phases`` (default ``render_phases``) of them, one per
+        shift of :func:`march_phases` (colour, opacity and depth averaged, the samples of all counted)."""
+        count = 1 if train else phases or self.config.render_phases
+        if count == 1:
+            return super().render(rays, background=background, train=train, generator=generator, view_dirs=view_dirs)
+        outs = [self.render_plan(rays, self.sample(rays, train=False, generator=None, phase=phase),
+                                 background=background, view_dirs=view_dirs) for phase in march_phases(count)]
+        return RenderOutput(rgb=torch.stack([o.rgb for o in outs]).mean(0), acc=torch.stack([o.acc for o in outs]).mean(0),
+                            depth=torch.stack([o.depth for o in outs]).mean(0),
+                            samples_evaluated=sum(o.samples_evaluated for o in outs))
 
     def get_density(self, points: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Post-activated density per world unit (per contracted unit in a contracted space).
