@@ -119,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.stop_eps is not None:
             model.config = dataclasses.replace(model.config, render_stop_eps=args.stop_eps)
         if args.phases is not None:
+            if not hasattr(model.config, "render_phases"):
+                raise ConfigError(f"--phases {args.phases}: only a grid run averages marches ({args.run} is not one)")
             model.config = dataclasses.replace(model.config, render_phases=args.phases)
     except ConfigError as err:
         print(f"bench_render: error: {err}", file=sys.stderr)

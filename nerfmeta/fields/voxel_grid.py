@@ -301,9 +301,10 @@ class VoxelGridConfig:
     each ray's samples by a random fraction of a step, so the field learns to render well *on average over that
     shift*, not at any one shift; with one-voxel steps (forward-facing and unbounded scenes) one march at
     the middles shows the difference as a fine crosshatch over walls and floors. Two marches average it away
-    at twice the samples (``samples_evaluated`` counts both): on 2000-step fits of beer +0.14 dB on each of its
-    nine held-out frames, on a 3000-step fit of a generated forward-facing scene +0.19 dB; on lego (an object,
-    half-voxel steps) +0.01 dB, so objects keep 1 (BENCHMARKS.md #16, session 46)."""
+    at twice the samples (``samples_evaluated`` counts both), on the same checkpoints: beer's 120-s fits +0.07-0.08
+    dB, SSIM +0.008, LPIPS -0.003..-0.006 (a 2000-step fit +0.14 dB, up on each of its nine held-out frames), two
+    generated forward-facing scenes +0.16..+0.31 dB (3000 steps, three seeds each); on lego (an object, half-voxel
+    steps) +0.01 dB, so objects keep 1 (BENCHMARKS.md #16, session 46)."""
     shell: float = 1.0
     """``contracted``: width of the shell holding everything outside the inner box, in inner-box half-sides (1: mip-NeRF 360's ``2 - 1/|x|``)."""
 
@@ -878,9 +879,9 @@ class VoxelGrid(RadianceModel):
     def render(self, rays: RayBatch, *, background: torch.Tensor, train: bool = False,
                generator: torch.Generator | None = None, view_dirs: torch.Tensor | None = None,
                phases: int | None = None) -> RenderOutput:
-        """The shared render; at test time the mean of ``phases`` (default ``render_phases``) of them, one per
-        shift of :func:`march_phases` (colour, opacity and depth averaged, the samples of all counted)."""
-        count = 1 if train else phases or self.config.render_phases
+        """The shared render (one march); at test time the mean of ``phases`` (default ``render_phases``) marches
+        shifted by :func:`march_phases` (colour, opacity and depth averaged, every march's samples counted)."""
+        count = 1 if train else (phases or self.config.render_phases)
         if count == 1:
             return super().render(rays, background=background, train=train, generator=generator, view_dirs=view_dirs)
         outs = [self.render_plan(rays, self.sample(rays, train=False, generator=None, phase=phase),
