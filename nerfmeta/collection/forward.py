@@ -18,6 +18,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -90,14 +91,21 @@ def forward_shape(wall_distance: float, layout_seed: int = 0) -> Shape:
                 Material((0.85, 0.8, 0.7), "noise", (0.25, 0.35, 0.55), frequency=12.0 / wall_distance, seed=7 + layout_seed),
                 position=(0.0, wall_distance + 0.1, 0.0))
     moved = np.array([(-0.9, 2.6, 0.35), (0.95, 3.4, 0.3), (0.05, 1.8, -0.55)]) + layout_offsets(layout_seed)
+    return Shape("forward", (wall, *object_parts(moved)))
+
+
+def object_parts(positions: np.ndarray) -> tuple[Part, Part, Part]:
+    """The three textured objects of the generated captures at (3, 3) ``positions``: a sphere of radius 0.45 with
+    value noise, a rounded box of half-side 0.35 with a checkerboard, a column (radius 0.16, half-height 0.45) with
+    stripes."""
     sphere = Part("sphere", Sphere(0.45), Material((0.9, 0.3, 0.2), "noise", (0.95, 0.85, 0.3), frequency=4.0, seed=3),
-                  position=tuple(moved[0].tolist()))
+                  position=tuple(positions[0].tolist()))
     box = Part("box", Box((0.35, 0.35, 0.35), rounding=0.03),
                Material((0.2, 0.5, 0.9), "checker", (0.95, 0.95, 0.95), frequency=4.0),
-               position=tuple(moved[1].tolist()))
+               position=tuple(positions[1].tolist()))
     column = Part("column", Cylinder(0.16, 0.45), Material((0.2, 0.7, 0.3), "stripes", (0.1, 0.15, 0.1), frequency=5.0),
-                  position=tuple(moved[2].tolist()))
-    return Shape("forward", (wall, sphere, box, column))
+                  position=tuple(positions[2].tolist()))
+    return sphere, box, column
 
 
 def capture_poses(config: ForwardSceneConfig) -> torch.Tensor:
@@ -147,14 +155,20 @@ def depth_bounds(shape: Shape, poses: torch.Tensor) -> np.ndarray:
     return torch.stack([near, far], -1).numpy()
 
 
+def render_capture(shape: Shape, poses: torch.Tensor, focal: float, height: int, width: int, supersample: int) -> np.ndarray:
+    """(V, H, W, 3) uint8 views of ``shape`` (its parts' box padded by 0.02) from ``poses`` (V, 4, 4)."""
+    aabb = torch.tensor(shape_part_bounds(shape.parts), dtype=torch.float32)
+    rgba = render_views(shape.sdf, shape.albedo, poses, focal, height, width,
+                        aabb + torch.tensor([[-0.02] * 3, [0.02] * 3]), RenderConfig(supersample=supersample))
+    return to_uint8(rgba[..., :3])
+
+
 def render_forward_scene(config: ForwardSceneConfig) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     """Render the scene: images (V, H, W, 3) uint8, poses (V, 4, 4) float64, bounds (V, 2) depths."""
     shape = forward_shape(config.wall_distance, config.layout_seed)
     poses = capture_poses(config)
-    aabb = torch.tensor(shape_part_bounds(shape.parts), dtype=torch.float32)
-    rgba = render_views(shape.sdf, shape.albedo, poses, config.focal, config.height, config.width,
-                        aabb + torch.tensor([[-0.02] * 3, [0.02] * 3]), RenderConfig(supersample=config.supersample))
-    return to_uint8(rgba[..., :3]), poses, depth_bounds(shape, poses)
+    images = render_capture(shape, poses, config.focal, config.height, config.width, config.supersample)
+    return images, poses, depth_bounds(shape, poses)
 
 
 def write_llff_scene(folder: str | os.PathLike, images: np.ndarray, poses: torch.Tensor, bounds: np.ndarray, focal: float) -> None:
@@ -178,9 +192,16 @@ def write_llff_scene(folder: str | os.PathLike, images: np.ndarray, poses: torch
 
 def make_forward_scene(folder: str | os.PathLike, config: ForwardSceneConfig = ForwardSceneConfig()) -> Path:
     """Render and write a forward-facing scene into ``folder`` (absent or empty); returns the folder."""
+    return make_llff_folder(folder, lambda: render_forward_scene(config), config.focal)
+
+
+def make_llff_folder(folder: str | os.PathLike, render: Callable[[], tuple[np.ndarray, torch.Tensor, np.ndarray]],
+                     focal: float) -> Path:
+    """Check that ``folder`` is absent or empty (else FileExistsError, before any work), then write what ``render()``
+    returns (images, poses, bounds) into it with :func:`write_llff_scene`; returns the folder."""
     folder = Path(folder)
     if folder.exists() and any(folder.iterdir()):
         raise FileExistsError(f"{folder}: not empty; choose a new folder")
-    images, poses, bounds = render_forward_scene(config)
-    write_llff_scene(folder, images, poses, bounds, config.focal)
+    images, poses, bounds = render()
+    write_llff_scene(folder, images, poses, bounds, focal)
     return folder
