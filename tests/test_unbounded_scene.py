@@ -47,7 +47,7 @@ def test_no_surface_is_nearer_a_camera_than_the_near_bound_and_the_far_bound_rea
     centres = poses[:, :3, 3].numpy()
     distance = shape.sdf(torch.tensor(centres, dtype=torch.float32)).numpy()  # exact distance to the nearest surface
     assert np.all(distance > bounds[:, 0])
-    assert np.all(bounds[:, 1] > config.room + config.radius - 0.5)  # the far wall, straight ahead, lies within
+    assert np.all(bounds[:, 1] > config.room + config.radius - 0.5)  # at least the far wall's distance across the room
 
 
 def test_written_scene_loads_as_an_unbounded_llff_scene(tiny_scene):

@@ -37,7 +37,7 @@ class UnboundedSceneConfig:
     views: int = 40
     """Cameras on the ring, evenly spaced in angle (then jittered)."""
     radius: float = 3.0
-    """Radius of the camera ring around the middle of the floor (the objects lie within 1 of it)."""
+    """Radius of the camera ring around the middle of the floor (the objects' centres lie within 1.3 of the middle)."""
     camera_height: float = 0.8
     """Height of the cameras above the floor (they look at a point 0.3 above the middle)."""
     room: float = 8.0
@@ -58,9 +58,10 @@ class UnboundedSceneConfig:
             raise ValueError(f"unbounded scene: fov_degrees must be in 1..120, got {self.fov_degrees}")
         if self.views < 3:
             raise ValueError(f"unbounded scene: views must be at least 3, got {self.views}")
-        if not (1.5 <= self.radius and 0.2 <= self.camera_height <= 3.0 and self.room >= self.radius + 2.0 and self.jitter >= 0):
-            raise ValueError("unbounded scene: radius >= 1.5, camera_height in 0.2..3, room >= radius + 2 and "
-                             "jitter >= 0 are required")
+        if not (2.0 <= self.radius and 0.2 <= self.camera_height <= 3.0 and self.room >= self.radius + 2.0
+                and self.jitter >= 0):
+            raise ValueError("unbounded scene: radius >= 2 (clear of the objects), camera_height in 0.2..3, "
+                             "room >= radius + 2 and jitter >= 0 are required")
 
     @property
     def focal(self) -> float:
@@ -70,7 +71,7 @@ class UnboundedSceneConfig:
 def unbounded_shape(room: float, layout_seed: int = 0) -> Shape:
     """The scene's geometry: a checkered floor, four walls with value noise (coarser the further, so it keeps about
     the same size in the images; as tall as the room is wide, so no view sees over them) and three textured objects
-    standing on the floor within 1 of the middle (moved by ``layout_seed``)."""
+    standing on the floor, their centres within 1.3 of the middle (moved by ``layout_seed``)."""
     thick = 0.1
     floor = Part("floor", Box((room + thick, room + thick, thick)),
                  Material((0.8, 0.78, 0.72), "checker", (0.45, 0.42, 0.4), frequency=1.0), position=(0.0, 0.0, -thick))
