@@ -297,7 +297,8 @@ class VoxelGridConfig:
     """Samples per ray marched and evaluated at a time in test-time renders (see ``render_stop_eps``)."""
     render_phases: int = 1
     """Test-time renders (evaluation, videos) average the colours of this many marches, their samples
-    (i + 0.5) / n of a step into their bins (i < n; 1: one march at the bins' middles). Training jitters
+    (i + 0.5) / n of a step into their bins (i < n; 1: one march at the bins' middles; 2 on forward-facing and
+    unbounded scenes, see their defaults). Training jitters
     each ray's samples by a random fraction of a step, so the field learns to render well *on average over that
     shift*, not at any one shift; with one-voxel steps (forward-facing and unbounded scenes) one march at
     the middles shows the difference as a fine crosshatch over walls and floors. Two marches average it away
