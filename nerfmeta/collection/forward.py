@@ -5,7 +5,7 @@ objects at different depths in front of a textured wall, photographed from a sma
 camera positions on a plane, every camera looking one way (at a point behind the objects, as a
 hand-held capture aims at its subject). World frame: z up, the cameras at ``y = 0`` looking
 along +y, the wall a plane facing them at ``y = wall_distance``. Rendered by the collection's
-sphere tracer (:func:`~nerfmeta.collection.render.render_views`), written as ``images/`` plus
+sphere tracer (:func:`~nerfmeta.collection.render.render_shape`), written as ``images/`` plus
 ``poses_bounds.npy`` (each view's near and far depth along its optical axis, from the known
 geometry, where LLFF takes them from the sparse points), so it goes through the real loader
 (:mod:`nerfmeta.data.llff`). Same config, same bytes.
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from nerfmeta.collection.generate import to_uint8
-from nerfmeta.collection.render import RenderConfig, render_views
+from nerfmeta.collection.render import RenderConfig, render_shape
 from nerfmeta.collection.shapes import Box, Cylinder, Material, Part, Shape, Sphere, shape_part_bounds
 from nerfmeta.data.write import encode_png
 from nerfmeta.io import write_bytes_atomic
@@ -156,11 +156,8 @@ def depth_bounds(shape: Shape, poses: torch.Tensor) -> np.ndarray:
 
 
 def render_capture(shape: Shape, poses: torch.Tensor, focal: float, height: int, width: int, supersample: int) -> np.ndarray:
-    """(V, H, W, 3) uint8 views of ``shape`` (its parts' box padded by 0.02) from ``poses`` (V, 4, 4)."""
-    aabb = torch.tensor(shape_part_bounds(shape.parts), dtype=torch.float32)
-    rgba = render_views(shape.sdf, shape.albedo, poses, focal, height, width,
-                        aabb + torch.tensor([[-0.02] * 3, [0.02] * 3]), RenderConfig(supersample=supersample))
-    return to_uint8(rgba[..., :3])
+    """(V, H, W, 3) uint8 views of ``shape`` from ``poses`` (V, 4, 4), by :func:`~nerfmeta.collection.render.render_shape`."""
+    return to_uint8(render_shape(shape, poses, focal, height, width, RenderConfig(supersample=supersample))[..., :3])
 
 
 def render_forward_scene(config: ForwardSceneConfig) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
