@@ -45,6 +45,8 @@ def test_a_white_capture_is_not_fitted_by_transparency(white_room):
     drawn, drawn_result = _coarse_fit(white_room, random_background=("unbounded",))
     assert _opacity(fixed, white_room) < 0.01
     assert _opacity(drawn, white_room) > 0.9
+    assert drawn_result.state.decisions["random_background"]["value"] is True
+    assert "not one of random_background=()" in fixed_result.state.decisions["random_background"]["reason"]
     # test renders keep the fixed background: the opaque white fit still scores well on its white test views
     assert drawn_result.final.psnr > 20.0 and fixed_result.final.psnr > 40.0
 
@@ -56,10 +58,12 @@ def test_objects_by_default_and_scenes_with_alpha_keep_the_fixed_background(tiny
     opaque_object = dataclasses.replace(load_scene(tiny_scene), alphas=None, background=None)
     assert with_alpha.alphas is not None and opaque_object.scene_type.kind == "object"
     for scene, drawn in ((opaque_object, FitConfig().random_background), (with_alpha, ("unbounded",))):
-        a, _ = _coarse_fit(scene, random_background=drawn)
+        a, result = _coarse_fit(scene, random_background=drawn)
         b, _ = _coarse_fit(scene, random_background=())
+        assert result.state.decisions["random_background"]["value"] is False
         for name, value in a.state_dict().items():
             assert torch.equal(value, b.state_dict()[name]), name
+    assert "alpha" in result.state.decisions["random_background"]["reason"]
 
 
 def test_saved_configs_without_the_field_resume_on_the_fixed_background():

@@ -118,11 +118,11 @@ class FitConfig:
     ``rand_bkgd`` does for its forward-facing and unbounded scenes), rather than on ``background``; test renders keep
     ``background``. Where every ray ends on something, a fixed white lets a surface as light as it turn half
     transparent and show the white through, which holds in the training views and not between them; a random colour
-    behind matches no photo, so the fit must make every ray opaque. Forward-facing scenes by default: +0.9 and +1.1 dB
-    on two generated layouts at 1500 steps. Not unbounded ones: a generated room gained 0.95 dB, but beer lost 6.6 dB
-    (its far railings and walls, which the white had stood in for, smeared over the contracted shell's coarse far
-    voxels; BENCHMARKS.md, #16 session 47). Never for scenes with alpha (their targets were composited on
-    ``background``)."""
+    behind matches no photo, so the fit must make every ray opaque. Forward-facing scenes by default: +0.9 to +2.5 dB
+    on four generated layouts at 1500 steps, +0.2 to +0.8 in 60-s fits, every seed. Not unbounded ones: a generated
+    room gained 0.9 dB, but beer lost 6.6 dB (its far railings and walls, which the white had stood in for, smeared
+    over the contracted shell's coarse far voxels; BENCHMARKS.md, #16 session 47). Never for scenes with alpha (their
+    targets were composited on ``background``)."""
     guard: GuardConfig = GuardConfig()
     """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
 
@@ -462,6 +462,16 @@ def fit(
             f"the pixels, {len(held)} scored every {config.holdout_every} steps): the fit ends with the parameters that "
             f"score best on them" + (f" and stops {config.patience} steps after the last improvement" if config.patience else "")),
             {"side": tiles.side, "fraction": round(share, 5), "scored_rays": len(held)})])
+
+    if "random_background" not in state.decisions:
+        kinds = ",".join(config.random_background) or "()"
+        why = ("training rays are composited on a random colour each, test renders on the fixed background: every ray "
+               "has to end on something" if random_background
+               else "its photos have alpha, composited on the fixed background" if kind in config.random_background
+               else f"{'an' if kind[0] in 'aeiou' else 'a'} {kind} scene, not one of random_background={kinds}")
+        note_decisions([Decision("random_background", random_background,
+                                 f"random background {'on' if random_background else 'off'}: {why}",
+                                 {"kind": kind, "alpha": scene.alphas is not None})])
 
     guard = DivergenceGuard(config.guard, lr_scale=state.lr_guard_scale, events=state.guard_events)
     guard.retake(state.step, model, optimizer)
