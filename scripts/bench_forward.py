@@ -44,13 +44,13 @@ ARMS = {"ndc": ["--scene-type", "auto"], "bounded": ["--scene-type", "object"],
         "ndc-0.75": ["--scene-type", "auto", "--ndc-near-factor", "0.75"],
         "ndc-tiles": ["--scene-type", "auto", "--holdout-scene-types", "object,forward"],
         "ndc-1march": ["--scene-type", "auto", "--set", "render_phases=1"],
-        "ndc-fixedbg": ["--scene-type", "auto", "--random-background", ""]}
+        "ndc-randombg": ["--scene-type", "auto", "--random-background", "forward"]}
 """Arms by name: the default route (NDC with the default near plane, every pixel trained on), the bounded grid, NDC
 with NeRF's near plane at 0.75 x the near bound (the default before session 7), NDC with held-out tiles and their
 early stop (session 44's default for fits of at most 20 views, which session 45 measured losing on these scenes), and
 NDC with its test views rendered by one march at the bins' middles (``render_phases`` 1, the default before session
 46; with ``--iters`` its fits are step for step those of ``ndc``, so only the test renders differ), and NDC trained on
-the fixed white background (``--random-background ""``, the default before session 47)."""
+random background colours (``--random-background forward``, session 47: not the default)."""
 
 
 def fit_once(scene: Path, out: Path, arm: str, args: argparse.Namespace, seed: int) -> dict:

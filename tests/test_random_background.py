@@ -52,12 +52,13 @@ def test_a_white_capture_is_not_fitted_by_transparency(white_room):
 
 
 def test_objects_by_default_and_scenes_with_alpha_keep_the_fixed_background(tiny_scene):
-    """An object scene (by default), and an unbounded one whose photos have alpha (whatever the setting), fit exactly
-    as on the fixed background: the same parameters, the same random draws."""
+    """A scene of a kind not named (an object scene with the forward-facing kind named), and an unbounded one whose
+    photos have alpha (whatever the setting), fit exactly as on the fixed background: the same parameters, the same
+    random draws."""
     with_alpha = load_scene(tiny_scene, scene_type="unbounded")
     opaque_object = dataclasses.replace(load_scene(tiny_scene), alphas=None, background=None)
     assert with_alpha.alphas is not None and opaque_object.scene_type.kind == "object"
-    for scene, drawn in ((opaque_object, FitConfig().random_background), (with_alpha, ("unbounded",))):
+    for scene, drawn in ((opaque_object, ("forward",)), (with_alpha, ("unbounded",))):
         a, result = _coarse_fit(scene, random_background=drawn)
         b, _ = _coarse_fit(scene, random_background=())
         assert result.state.decisions["random_background"]["value"] is False
@@ -67,7 +68,7 @@ def test_objects_by_default_and_scenes_with_alpha_keep_the_fixed_background(tiny
 
 
 def test_saved_configs_without_the_field_resume_on_the_fixed_background():
-    assert FitConfig().random_background == ("forward",)
+    assert FitConfig().random_background == ()
     assert FitConfig.from_json({"iters": 10}).random_background == ()
     assert FitConfig.from_json({"iters": 10, "random_background": ["unbounded"]}).random_background == ("unbounded",)
     with pytest.raises(Exception, match="random_background"):

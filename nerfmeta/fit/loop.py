@@ -113,16 +113,18 @@ class FitConfig:
     patience_db: float = bounded(0.1, low=0)
     """How far below the best the last held-out score must be to stop early, or for the fit to end with the best
     parameters rather than its last: a plateau within it is noise, not a fall."""
-    random_background: tuple[Literal["object", "forward", "unbounded"], ...] = ("forward",)
+    random_background: tuple[Literal["object", "forward", "unbounded"], ...] = ()
     """Kinds of scene whose training rays are composited on a random colour, drawn per ray (as DirectVoxGO's
     ``rand_bkgd`` does for its forward-facing and unbounded scenes), rather than on ``background``; test renders keep
     ``background``. Where every ray ends on something, a fixed white lets a surface as light as it turn half
     transparent and show the white through, which holds in the training views and not between them; a random colour
-    behind matches no photo, so the fit must make every ray opaque. Forward-facing scenes by default: +0.9 to +2.5 dB
-    on four generated layouts at 1500 steps, +0.2 to +0.8 in 60-s fits, every seed. Not unbounded ones: a generated
-    room gained 0.9 dB, but beer lost 6.6 dB (its far railings and walls, which the white had stood in for, smeared
-    over the contracted shell's coarse far voxels; BENCHMARKS.md, #16 session 47). Never for scenes with alpha (their
-    targets were composited on ``background``)."""
+    behind matches no photo, so the fit is pushed to make every ray opaque. None by default (measured in session 47,
+    BENCHMARKS.md #16): on four generated forward-facing layouts at 160 x 120 it gained +0.9 to +2.5 dB at 1500 steps
+    and +0.2 to +0.8 in 60-s fits, every seed, but at LLFF's 504 x 378 in the 120 s that #16 asks for it lost 4.5-4.9
+    dB (a finer grid, each voxel seen less often: the training error fell far more slowly, and the far wall came out
+    streaked and blotched); on unbounded captures a generated room gained 0.9 dB and beer lost 6.6 (its far railings
+    and walls, which the white had stood in for, smeared over the contracted shell's coarse far voxels). Never for
+    scenes with alpha (their targets were composited on ``background``)."""
     guard: GuardConfig = GuardConfig()
     """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
 
