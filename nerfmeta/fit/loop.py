@@ -465,8 +465,8 @@ def fit(
             f"score best on them" + (f" and stops {config.patience} steps after the last improvement" if config.patience else "")),
             {"side": tiles.side, "fraction": round(share, 5), "scored_rays": len(held)})])
 
-    if "random_background" not in state.decisions:
-        kinds = ",".join(config.random_background) or "()"
+    if config.random_background and "random_background" not in state.decisions:  # asked for: say whether it applies
+        kinds = ",".join(config.random_background)
         why = ("training rays are composited on a random colour each, test renders on the fixed background: every ray "
                "has to end on something" if random_background
                else "its photos have alpha, composited on the fixed background" if kind in config.random_background
