@@ -498,3 +498,13 @@ def test_voxels_per_pixel_sets_the_auto_grid(scene):
     assert VoxelGridConfig(voxels_per_pixel=0.05).for_scene(sized).num_voxels == 16**3  # the clamp still holds
     with pytest.raises(ConfigError, match="voxels_per_pixel"):
         VoxelGridConfig(voxels_per_pixel=0.0)
+
+
+def test_max_side_caps_the_auto_grid_whatever_the_images_size(scene):
+    large = dataclasses.replace(scene, images=torch.zeros(1, 378, 504, 3))
+    assert VoxelGridConfig(voxels_per_pixel=0.25).for_scene(large).num_voxels == 126**3
+    assert VoxelGridConfig(voxels_per_pixel=0.25, max_side=64).for_scene(large).num_voxels == 64**3
+    assert VoxelGridConfig(max_side=64).for_scene(dataclasses.replace(scene, images=torch.zeros(1, 40, 40, 3))).num_voxels == 35**3
+    assert VoxelGridConfig(max_side=64, num_voxels=1000).for_scene(large).num_voxels == 1000  # an explicit count wins
+    with pytest.raises(ConfigError, match="max_side"):
+        VoxelGridConfig(max_side=8)

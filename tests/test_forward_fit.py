@@ -94,12 +94,16 @@ def test_forward_scenes_get_the_grids_forward_defaults_and_set_still_wins(forwar
 
 def test_a_forward_grid_has_a_quarter_voxel_per_pixel_and_an_object_grid_keeps_its_own(forward_scene, tiny_scene):
     """The NDC grid is sized from the image at 0.25 voxels per pixel (DirectVoxGO's LLFF ratio), not at the
-    object grid's 0.88; an explicit count or ratio still wins."""
+    object grid's 0.88, and at most 64 voxels across; an explicit count, ratio or cap still wins."""
     forward = fit_space(load_scene(forward_scene))
     sized = dataclasses.replace(forward, images=torch.zeros(1, 120, 160, 3))
     assert RunConfig(scene="x").model_config(sized).num_voxels == 40**3
     assert RunConfig(scene="x").model_config(sized).lr_density == 0.3
-    assert RunConfig(scene="x", model={"voxels_per_pixel": 0.5}).model_config(sized).num_voxels == 80**3
+    assert RunConfig(scene="x", model={"voxels_per_pixel": 0.5, "max_side": 160}).model_config(sized).num_voxels == 80**3
+    # at most 64 across, whatever the images' size (LLFF's 504 x 378 would give 126)
+    assert RunConfig(scene="x", model={"voxels_per_pixel": 0.5}).model_config(sized).num_voxels == 64**3
+    large = dataclasses.replace(forward, images=torch.zeros(1, 378, 504, 3))
+    assert RunConfig(scene="x").model_config(large).num_voxels == 64**3
     assert RunConfig(scene="x", model={"num_voxels": 1000}).model_config(sized).num_voxels == 1000
     obj = load_scene(tiny_scene)
     side = round(0.88 * max(obj.height, obj.width))

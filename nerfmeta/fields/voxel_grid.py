@@ -150,7 +150,7 @@ empty-space skipping) so its parameter set never changes."""
 
 
 FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0,
-                                    "voxels_per_pixel": 0.25, "lr_density": 0.3, "render_phases": 2}
+                                    "voxels_per_pixel": 0.25, "max_side": 64, "lr_density": 0.3, "render_phases": 2}
 """Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them).
 
 - ``voxels_per_pixel`` 0.25 (DirectVoxGO's LLFF ratio: 256^3 voxels for 1008-pixel-wide images; 40^3 at
@@ -160,6 +160,12 @@ FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-
   the wall at 16) and scored 20.9 dB on held-out views; at 0.25 it drew the wall where it is and scored
   27-29 dB (ranking runs, BENCHMARKS.md #16 session 6). 0.19 and 0.375 did about as well on one layout,
   0.375 2 dB worse on the other.
+- ``max_side`` 64: the grid no finer than 64 voxels across, whatever the images' size. The parallax a capture gives
+  does not grow with its pixels: at LLFF's 504 x 378 (0.25 would give 126) two generated layouts at 2000 steps
+  scored best at 45-96 voxels across (scene A: 32 / 45 / 63 / 96 / 126 / 189 voxels: 32.7 / 34.8 / 35.3 / 34.2 /
+  31.2 / 28.6 dB; layout 2: 28.2 / 27.6 / 27.6 / 27.9 / 26.5 / 24.9), and 64 made the user's 120-s fit of scene A
+  36.2 dB instead of 31.3, its steps twice as fast (BENCHMARKS.md #16 session 47). At 160 x 120 (40 across) nothing
+  changes.
 - ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on both generated layouts.
 - Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
   (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
@@ -286,7 +292,9 @@ class VoxelGridConfig:
     tv_features_weight: float = 0.0
     """Weight of a total-variation loss on the fine feature grid (diffuse logits and MLP features; 0: off; DirectVoxGO's ``weight_tv_k0``)."""
     voxels_per_pixel: float = AUTO_VOXELS_PER_PIXEL
-    """Auto fine grid (``num_voxels`` 0): voxels per axis per pixel of the larger image side, before the clamp to 16..160 (see ``for_scene``)."""
+    """Auto fine grid (``num_voxels`` 0): voxels per axis per pixel of the larger image side, before the clamp to 16..``max_side`` (see ``for_scene``)."""
+    max_side: int = AUTO_MAX_SIDE
+    """Auto fine grid (``num_voxels`` 0): at most ``max_side^3`` voxels, whatever the images' size (at least 16)."""
     space: str = "auto"
     """Where the grids live: ``box`` (the scene's bounding box), ``contracted`` (an unbounded scene: an inner box around what the cameras look at at full resolution, the rest of space squashed into a shell, see :mod:`nerfmeta.render.contraction`), or ``auto``: contracted for scenes detected (or declared) unbounded, else box."""
     inner_box: tuple[float, ...] = ()
@@ -340,6 +348,7 @@ class VoxelGridConfig:
             *((name, 0.0 <= getattr(self, name) < math.inf, "use 0 (off) or a positive finite weight")
               for name in ("tv_weight", "tv_features_weight")),
             ("voxels_per_pixel", 0.0 < self.voxels_per_pixel < math.inf, "use a positive ratio, e.g. 0.88"),
+            ("max_side", self.max_side >= AUTO_MIN_SIDE, f"use at least {AUTO_MIN_SIDE}, e.g. {AUTO_MAX_SIDE}"),
             ("distortion_weight", 0.0 <= self.distortion_weight < math.inf, "use 0 (off) or a positive finite weight"),
             ("space", self.space in ("auto", "box", "contracted"), "use auto, box or contracted"),
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
@@ -357,7 +366,7 @@ class VoxelGridConfig:
         """This config with the "auto" (0) grid sizes resolved for ``scene``.
 
         Rule: the fine grid gets ``n^3`` voxels with ``n = voxels_per_pixel * max(height, width)`` clamped to
-        16..160; the default 0.88 is about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
+        16..``max_side`` (160); the default 0.88 is about one voxel per pixel footprint for NeRF-synthetic cameras (88^3 for 100x100
         views, 28^3 for 32x32, and DirectVoxGO's 160^3 from 182x182 up, e.g. 800x800). The
         coarse grid gets ``(n / 2)^3`` voxels (at least 16^3). Sizes given explicitly are kept.
 
@@ -367,7 +376,7 @@ class VoxelGridConfig:
         every optical axis, just holding every camera).
         """
         side = round(self.voxels_per_pixel * max(scene.height, scene.width))
-        side = min(AUTO_MAX_SIDE, max(AUTO_MIN_SIDE, side))
+        side = min(self.max_side, max(AUTO_MIN_SIDE, side))
         num = self.num_voxels or side**3
         coarse = self.coarse_num_voxels or max(AUTO_MIN_SIDE, round(AUTO_COARSE_RATIO * side)) ** 3
         space = self.space

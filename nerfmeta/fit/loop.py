@@ -121,10 +121,11 @@ class FitConfig:
     behind matches no photo, so the fit is pushed to make every ray opaque. None by default (measured in session 47,
     BENCHMARKS.md #16): on four generated forward-facing layouts at 160 x 120 it gained +0.9 to +2.5 dB at 1500 steps
     and +0.2 to +0.8 in 60-s fits, every seed, but at LLFF's 504 x 378 in the 120 s that #16 asks for it lost 4.5-4.9
-    dB (a finer grid, each voxel seen less often: the training error fell far more slowly, and the far wall came out
-    streaked and blotched); on unbounded captures a generated room gained 0.9 dB and beer lost 6.6 (its far railings
-    and walls, which the white had stood in for, smeared over the contracted shell's coarse far voxels). Never for
-    scenes with alpha (their targets were composited on ``background``)."""
+    dB with the grid then 126 voxels across (the training error fell far more slowly, the far wall came out streaked)
+    and 0.6 dB with it 64 across (its steps slower: 1602 in 120 s against 3000 in 87 s); on unbounded captures a
+    generated room gained 0.9 dB and beer lost 6.6 (its far railings and walls, which the white had stood in for,
+    smeared over the contracted shell's coarse far voxels). Never for scenes with alpha (their targets were composited
+    on ``background``)."""
     guard: GuardConfig = GuardConfig()
     """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
 
