@@ -26,6 +26,7 @@ import torch
 from nerfmeta.collection.generate import to_uint8
 from nerfmeta.collection.render import RenderConfig, render_shape
 from nerfmeta.collection.shapes import Box, Cylinder, Material, Part, Shape, Sphere, shape_part_bounds
+from nerfmeta.data.blender import focal_from_angle
 from nerfmeta.data.write import encode_png
 from nerfmeta.io import write_bytes_atomic
 from nerfmeta.render.cameras import look_at
@@ -57,10 +58,7 @@ class ForwardSceneConfig:
     """Anti-aliasing rays per pixel along each axis at edges (see RenderConfig)."""
 
     def __post_init__(self) -> None:
-        if self.width < 4 or self.height < 4:
-            raise ValueError(f"forward scene: images must be at least 4x4 pixels, got {self.width}x{self.height}")
-        if not 1.0 <= self.fov_degrees <= 120.0:
-            raise ValueError(f"forward scene: fov_degrees must be in 1..120, got {self.fov_degrees}")
+        check_views("forward scene", self.width, self.height, self.fov_degrees)
         if len(self.grid) != 2 or min(self.grid) < 1 or self.grid[0] * self.grid[1] < 2:
             raise ValueError(f"forward scene: grid must be two positive counts with at least 2 views, got {self.grid}")
         if self.spacing <= 0 or self.wall_distance <= 3.5 or self.jitter < 0:
@@ -68,7 +66,16 @@ class ForwardSceneConfig:
 
     @property
     def focal(self) -> float:
-        return 0.5 * self.width / math.tan(0.5 * math.radians(self.fov_degrees))
+        return focal_from_angle(math.radians(self.fov_degrees), self.width)
+
+
+def check_views(what: str, width: int, height: int, fov_degrees: float) -> None:
+    """ValueError naming ``what`` unless the views are at least 4 x 4 pixels with a horizontal field of view in 1..120
+    degrees (the generated captures' common checks)."""
+    if width < 4 or height < 4:
+        raise ValueError(f"{what}: images must be at least 4x4 pixels, got {width}x{height}")
+    if not 1.0 <= fov_degrees <= 120.0:
+        raise ValueError(f"{what}: fov_degrees must be in 1..120, got {fov_degrees}")
 
 
 def layout_offsets(layout_seed: int) -> np.ndarray:

@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfmeta.collection.forward import layout_offsets, make_llff_folder, object_parts, render_capture
+from nerfmeta.collection.forward import check_views, layout_offsets, make_llff_folder, object_parts, render_capture
 from nerfmeta.collection.shapes import Box, Material, Part, Shape
+from nerfmeta.data.blender import focal_from_angle
 from nerfmeta.render.cameras import look_at
 
 
@@ -52,10 +53,7 @@ class UnboundedSceneConfig:
     """Anti-aliasing rays per pixel along each axis at edges (see RenderConfig)."""
 
     def __post_init__(self) -> None:
-        if self.width < 4 or self.height < 4:
-            raise ValueError(f"unbounded scene: images must be at least 4x4 pixels, got {self.width}x{self.height}")
-        if not 1.0 <= self.fov_degrees <= 120.0:
-            raise ValueError(f"unbounded scene: fov_degrees must be in 1..120, got {self.fov_degrees}")
+        check_views("unbounded scene", self.width, self.height, self.fov_degrees)
         if self.views < 3:
             raise ValueError(f"unbounded scene: views must be at least 3, got {self.views}")
         if not (2.0 <= self.radius and 0.2 <= self.camera_height <= 3.0 and self.room >= self.radius + 2.0
@@ -65,7 +63,7 @@ class UnboundedSceneConfig:
 
     @property
     def focal(self) -> float:
-        return 0.5 * self.width / math.tan(0.5 * math.radians(self.fov_degrees))
+        return focal_from_angle(math.radians(self.fov_degrees), self.width)
 
 
 def unbounded_shape(room: float, layout_seed: int = 0) -> Shape:
