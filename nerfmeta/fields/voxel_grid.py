@@ -164,8 +164,8 @@ FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-
   does not grow with its pixels: at LLFF's 504 x 378 (0.25 would give 126) two generated layouts at 2000 steps
   scored best at 45-96 voxels across (scene A: 32 / 45 / 63 / 96 / 126 / 189 voxels: 32.7 / 34.8 / 35.3 / 34.2 /
   31.2 / 28.6 dB; layout 2: 28.2 / 27.6 / 27.6 / 27.9 / 26.5 / 24.9), and 64 made the user's 120-s fit of scene A
-  36.2 dB instead of 31.3, its steps twice as fast (BENCHMARKS.md #16 session 47). At 160 x 120 (40 across) nothing
-  changes.
+  36.2 dB instead of 31.3, its steps twice as fast, layout 2's 27.8 instead of 26.4, and layout 3's (not used to
+  choose it) 28.4 instead of 27.6 (BENCHMARKS.md #16 session 47). At 160 x 120 (40 across) nothing changes.
 - ``lr_density`` 0.3 (0.1 for objects): +1.7 dB at equal steps on both generated layouts.
 - Every ray ends on something (no blank background), so the coarse grid starts a third opaque along a ray
   (alpha 1e-2 a step) rather than clear (from 1e-4 the first 30 steps render mostly the background), 50
