@@ -89,6 +89,7 @@ from nerfmeta.fields.grid_ops import (
     voxel_layout,
 )
 from nerfmeta.data.scene_type import focus_point, view_directions
+from nerfmeta.render.background import equirect_lookup
 from nerfmeta.render.contraction import InnerBox, inner_box_from_cameras, to_march
 from nerfmeta.render.estimators import OccupancyGrid, PackedSamples, contracted_interval, evaluate_in_chunks
 from nerfmeta.render.volume import Composite, packed_distortion, softplus_shift_for_alpha
@@ -316,6 +317,12 @@ class VoxelGridConfig:
     steps) +0.01 dB, so objects keep 1 (BENCHMARKS.md #16, session 46)."""
     shell: float = 1.0
     """``contracted``: width of the shell holding everything outside the inner box, in inner-box half-sides (1: mip-NeRF 360's ``2 - 1/|x|``)."""
+    background_map: int = 0
+    """``contracted``: rows of a learned background behind the contracted space, an equirectangular table of
+    ``background_map x 2 background_map`` colours indexed by the ray's direction (:mod:`nerfmeta.render.background`),
+    added to the fixed background colour (so a fit starts from it) and clamped to [0, 1]; 0: the fixed colour alone."""
+    lr_background: float = 0.1
+    """Learning rate of the background table (``background_map`` > 0)."""
 
     def __post_init__(self) -> None:
         # JSON has no tuples: accept a list for ``growth_steps`` so a saved config loads back equal.
@@ -344,7 +351,7 @@ class VoxelGridConfig:
             ("growth_cutoff", 0.0 < self.growth_cutoff <= 1.0, "use a fraction of the fit in (0, 1], e.g. 0.7"),
             ("world_bound_scale", self.world_bound_scale > 0.0, "use a positive scale, e.g. 1.05"),
             *((name, 0.0 < getattr(self, name) < math.inf, "use a positive finite learning rate")
-              for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp")),
+              for name in ("coarse_lr_density", "lr_density", "lr_features", "lr_mlp", "lr_background")),
             *((name, 0.0 <= getattr(self, name) < math.inf, "use 0 (off) or a positive finite weight")
               for name in ("tv_weight", "tv_features_weight")),
             ("voxels_per_pixel", 0.0 < self.voxels_per_pixel < math.inf, "use a positive ratio, e.g. 0.88"),
@@ -354,6 +361,8 @@ class VoxelGridConfig:
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
              "use [] (from the cameras) or [x, y, z, half_side] with half_side > 0"),
             ("shell", 0.0 < self.shell < math.inf, "use a positive width, e.g. 1"),
+            ("background_map", isinstance(self.background_map, int) and self.background_map >= 0,
+             "use 0 (the fixed background colour) or a number of rows, e.g. 64"),
             ("render_stop_eps", 0.0 <= self.render_stop_eps < 1.0, "use a value in [0, 1), e.g. 1e-4"),
             ("render_round_samples", self.render_round_samples >= 1, "use 1 or more, e.g. 32"),
             ("render_phases", isinstance(self.render_phases, int) and self.render_phases >= 1, "use 1 or more, e.g. 2"),
@@ -488,6 +497,12 @@ class VoxelGrid(RadianceModel):
             bounds = torch.tensor([[-self.box.extent] * 3, [self.box.extent] * 3], device=bounds.device)
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
+        if config.background_map > 0:
+            if self.box is None:
+                raise ConfigError(f"grid config background_map={config.background_map} needs space=contracted "
+                                  "(an unbounded scene): a box's rays end on the fixed background")
+            rows = config.background_map
+            self.background_map = nn.Parameter(torch.zeros(3, rows, 2 * rows, device=bounds.device))
         self.occupancy = OccupancyGrid(self.scene_bounds, box=self.box)
         self.level = 0
         self.growth_skipped = False  # a late growth was skipped (said once)
@@ -657,19 +672,23 @@ class VoxelGrid(RadianceModel):
 
     # ----- interface ---------------------------------------------------------------------------
     def layers(self) -> list[Layer]:
+        background = [Layer("background_map", ("background_map",))] if "background_map" in self._parameters else []
         if self.stage == "coarse":
-            return [Layer("density_coarse", ("density_coarse",)), Layer("color_coarse", ("color_coarse",))]
+            return [Layer("density_coarse", ("density_coarse",)), Layer("color_coarse", ("color_coarse",)), *background]
         out = [Layer("density", ("density",)), Layer("features", ("features",))]
         if "mlp" in self._modules:
             out += [Layer(f"mlp.{i}", (f"mlp.linears.{i}.weight", f"mlp.linears.{i}.bias")) for i in range(len(self.mlp.linears))]
-        return out
+        return out + background
 
     def param_groups(self) -> list[ParamGroup]:
         cfg = self.config
+        background = ([ParamGroup("background", ("background_map",), cfg.lr_background)]
+                      if "background_map" in self._parameters else [])
         if self.stage == "coarse":
             return [
                 ParamGroup("density", ("density_coarse",), cfg.coarse_lr_density, DENSITY_ADAM_EPS),
                 ParamGroup("features", ("color_coarse",), cfg.lr_features),
+                *background,
             ]
         groups = [
             ParamGroup("density", ("density",), cfg.lr_density, DENSITY_ADAM_EPS),
@@ -677,7 +696,7 @@ class VoxelGrid(RadianceModel):
         ]
         if "mlp" in self._modules:
             groups.append(ParamGroup("mlp", tuple(f"mlp.{n}" for n, _ in self.mlp.named_parameters()), cfg.lr_mlp))
-        return groups
+        return groups + background
 
     def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
         """``mse``, plus in the fine stage ``tv`` (``tv_weight`` times the density grid's total variation) and
@@ -899,6 +918,13 @@ class VoxelGrid(RadianceModel):
         return RenderOutput(rgb=torch.stack([o.rgb for o in outs]).mean(0), acc=torch.stack([o.acc for o in outs]).mean(0),
                             depth=torch.stack([o.depth for o in outs]).mean(0),
                             samples_evaluated=sum(o.samples_evaluated for o in outs))
+
+    def render_plan(self, rays: RayBatch, plan: SamplingPlan, *, background: torch.Tensor, train: bool = False,
+                    view_dirs: torch.Tensor | None = None) -> RenderOutput:
+        """The shared render, with the learned background table (``background_map``) added to ``background``."""
+        if "background_map" in self._parameters:
+            background = (background + equirect_lookup(self.background_map, rays.directions)).clamp(0.0, 1.0)
+        return super().render_plan(rays, plan, background=background, train=train, view_dirs=view_dirs)
 
     def get_density(self, points: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Post-activated density per world unit (per contracted unit in a contracted space).
