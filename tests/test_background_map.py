@@ -1,4 +1,4 @@
-"""The learned background of unbounded scenes: an equirectangular colour table looked up by ray direction."""
+"""The learned background of forward-facing and unbounded scenes: an equirectangular colour table looked up by ray direction."""
 
 import dataclasses
 import math
@@ -6,12 +6,16 @@ import math
 import pytest
 import torch
 
+from nerfmeta.collection.forward import ForwardSceneConfig, make_forward_scene
 from nerfmeta.data import load_scene
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import check_partition
+from nerfmeta.fields.registry import config_from_dict
 from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
-from nerfmeta.fit.sampler import view_rays
+from nerfmeta.fit.run import RunConfig
+from nerfmeta.fit.sampler import fit_space, view_rays
+from nerfmeta.io import to_jsonable
 from nerfmeta.render.background import equirect_coords, equirect_lookup
 
 SMALL = VoxelGridConfig(coarse_iters=30, coarse_num_voxels=16**3, num_voxels=24**3, growth_steps=(20,),
@@ -111,10 +115,21 @@ def test_the_table_learns_the_colour_along_each_direction(unbounded):
     assert before > 0.05 and after < 2e-4, (before, after)
 
 
-def test_a_box_refuses_the_table_and_bad_values_are_refused(tiny_scene):
-    scene = load_scene(tiny_scene)  # an object: the grid lives in the scene's box
-    with pytest.raises(ConfigError, match="background_map=8 needs space=contracted"):
-        _model(dataclasses.replace(SMALL, background_map=8), scene)
+def test_bad_values_are_refused():
     for bad in ({"background_map": -1}, {"background_map": 2.5}, {"lr_background": 0.0}):
         with pytest.raises(ConfigError):
             dataclasses.replace(SMALL, **bad)
+
+
+def test_forward_and_unbounded_scenes_learn_a_background_and_objects_keep_the_fixed_one(tiny_scene, tmp_path):
+    obj, unb = load_scene(tiny_scene), load_scene(tiny_scene, scene_type="unbounded")
+    fwd = fit_space(load_scene(make_forward_scene(tmp_path / "fwd", ForwardSceneConfig(width=24, height=18, grid=(3, 3),
+                                                                                       supersample=1))))
+    run = RunConfig(scene="x")
+    assert run.model_config(obj).background_map == 0
+    assert run.model_config(unb).background_map == 1 and run.model_config(fwd).background_map == 1
+    assert RunConfig(scene="x", model={"background_map": 0}).model_config(unb).background_map == 0  # --set wins
+    # a run saved before the table existed resumes without it (its config.json holds the whole model config)
+    saved = to_jsonable(run.model_config(unb))
+    del saved["background_map"], saved["lr_background"]
+    assert config_from_dict("grid", saved).background_map == 0

@@ -48,7 +48,9 @@ other test-time lookups (no gradient) use one fused ``grid_sample`` per grid ins
 on channels-last copies of the colour grids, made once per whole-view render, :meth:`VoxelGrid.render_session`,
 not per chunk): the same values, 1.8x the rays per second on a contracted beer frame
 and 1.1-1.2x on lego (BENCHMARKS.md, *Faster test renders*).
-An optional distortion loss (``distortion_weight``, mip-NeRF 360) gathers each ray's weight.
+An optional distortion loss (``distortion_weight``, mip-NeRF 360) gathers each ray's weight. What a ray meets after
+everything the grid holds can be learned (``background_map``: a table of colours by ray direction added to the fixed
+background colour, :mod:`nerfmeta.render.background`; one row on forward-facing and unbounded scenes).
 
 Defaults: DirectVoxGO's, except where a 60-second budget on a 2-core CPU asked otherwise (each
 measured on lego at 100 x 100, see BENCHMARKS.md): a 100-step coarse stage (DirectVoxGO: 5000)
@@ -151,7 +153,8 @@ empty-space skipping) so its parameter set never changes."""
 
 
 FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-2, "stepsize": 1.0,
-                                    "voxels_per_pixel": 0.25, "max_side": 64, "lr_density": 0.3, "render_phases": 2}
+                                    "voxels_per_pixel": 0.25, "max_side": 64, "lr_density": 0.3, "render_phases": 2,
+                                    "background_map": 1}
 """Defaults for a forward-facing scene fitted in NDC (``--set`` still overrides them).
 
 - ``voxels_per_pixel`` 0.25 (DirectVoxGO's LLFF ratio: 256^3 voxels for 1008-pixel-wide images; 40^3 at
@@ -173,12 +176,17 @@ FORWARD_DEFAULTS: dict[str, Any] = {"coarse_iters": 50, "coarse_alpha_init": 1e-
   coarse steps find where the content is, and a step is one voxel as in DirectVoxGO's LLFF config.
 - ``render_phases`` 2: with one-voxel steps a test render at the bins' middles shows the field's aliasing (see
   the field's documentation).
+- ``background_map`` 1: what shows through where the grid is not opaque is a learned colour (two, blended round
+  the horizon), not the fixed white, which no real capture has behind it. At 504 x 378 and 2000 fixed steps: scene
+  A 36.92 dB against 35.51, layout 2 30.96 against 27.42, layout 3 32.84 against 27.86 (with the white, the view
+  trial read the white's mismatch as view dependence and kept the MLP on layouts 2 and 3: steps 2.5x as slow); at
+  160 x 120, 1500 steps, scenes A and B +0.78 and +1.24 dB (BENCHMARKS.md #16 session 48).
 
 Tried and left off (ranking runs): total variation on the density (1e-3 and 1e-1: no change, 1.0: worse)
 and on the features (``tv_features_weight`` 1e-2: no change)."""
 
 
-UNBOUNDED_DEFAULTS: dict[str, Any] = {"stepsize": 1.0, "render_phases": 2}
+UNBOUNDED_DEFAULTS: dict[str, Any] = {"stepsize": 1.0, "render_phases": 2, "background_map": 1}
 """Defaults for an unbounded capture (cameras around a subject, a real background) fitted in a contracted space.
 
 (``view_dependent``: the field's default, the per-scene trial ``"auto"``, was decided for these captures first, in
@@ -199,7 +207,14 @@ of 563-574, 27.56 dB on the nine held-out frames instead of 27.43 (medians of th
 visibly sharper walk, and test renders at 106k rays/s instead of 62k (103 samples a ray instead of 203;
 BENCHMARKS.md, #16 session 27). Measured on beer only (the one unbounded capture here), on this CPU only.
 
-``render_phases`` 2: as for forward-facing scenes (one-voxel steps)."""
+``render_phases`` 2: as for forward-facing scenes (one-voxel steps).
+
+``background_map`` 1: what a ray meets after the whole contracted space is a learned colour (two, blended round the
+horizon), not the fixed white, which a third of beer's light came from (light tiles and walls left half transparent).
+On beer's 120-s fit 28.66-28.79 dB on the nine held-out frames against 27.41-27.55 (three seeds), LPIPS 0.25 against
+0.33, more steps in the time (1121-1179 against 867-948) and faster test renders (63k rays/s against 52-57k, 145
+samples a ray against 207); at fixed steps on a generated room 26.85 dB against 22.27. Finer tables did worse on both
+(beer at 16 rows 28.16, at 128 26.60; BENCHMARKS.md #16 session 48)."""
 
 
 @dataclass(frozen=True)
@@ -318,9 +333,15 @@ class VoxelGridConfig:
     shell: float = 1.0
     """``contracted``: width of the shell holding everything outside the inner box, in inner-box half-sides (1: mip-NeRF 360's ``2 - 1/|x|``)."""
     background_map: int = 0
-    """``contracted``: rows of a learned background behind the contracted space, an equirectangular table of
-    ``background_map x 2 background_map`` colours indexed by the ray's direction (:mod:`nerfmeta.render.background`),
-    added to the fixed background colour (so a fit starts from it) and clamped to [0, 1]; 0: the fixed colour alone."""
+    """Rows of a learned background: what a ray meets after everything the grid holds (beyond the contracted cube,
+    past an NDC grid's far plane, out of a box) is an equirectangular table of ``background_map x 2 background_map``
+    colours looked up by the direction of the ray the grid marches (world directions; NDC ones on forward-facing
+    scenes; :mod:`nerfmeta.render.background`), added to the fixed background colour (so a fit starts from it) and
+    clamped to [0, 1] (a channel pushed past either end gets no gradient there and stays: on the generated
+    forward-facing scenes it went to black; beer's settled at a light warm grey, 0.70-0.79). 0: the fixed colour alone
+    (objects: their photos are composited on it). 1 (forward-facing and unbounded scenes, see their defaults) is
+    two colours blended round the horizon, close to one learned colour; finer tables did worse on beer and on a
+    generated room (BENCHMARKS.md #16 session 48)."""
     lr_background: float = 0.1
     """Learning rate of the background table (``background_map`` > 0)."""
 
@@ -498,9 +519,6 @@ class VoxelGrid(RadianceModel):
         self.register_buffer("scene_bounds", bounds.detach().clone().float())
         self.register_buffer("bounds", self.scene_bounds.clone())
         if config.background_map > 0:
-            if self.box is None:
-                raise ConfigError(f"grid config background_map={config.background_map} needs space=contracted "
-                                  "(an unbounded scene): a box's rays end on the fixed background")
             rows = config.background_map
             self.background_map = nn.Parameter(torch.zeros(3, rows, 2 * rows, device=bounds.device))
         self.occupancy = OccupancyGrid(self.scene_bounds, box=self.box)
