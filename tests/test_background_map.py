@@ -116,7 +116,7 @@ def test_the_table_learns_the_colour_along_each_direction(unbounded):
 
 
 def test_bad_values_are_refused():
-    for bad in ({"background_map": -1}, {"background_map": 2.5}, {"lr_background": 0.0}):
+    for bad in ({"background_map": -1}, {"background_map": 2.5}, {"background_map": True}, {"lr_background": 0.0}):
         with pytest.raises(ConfigError):
             dataclasses.replace(SMALL, **bad)
 

@@ -382,8 +382,8 @@ class VoxelGridConfig:
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
              "use [] (from the cameras) or [x, y, z, half_side] with half_side > 0"),
             ("shell", 0.0 < self.shell < math.inf, "use a positive width, e.g. 1"),
-            ("background_map", isinstance(self.background_map, int) and self.background_map >= 0,
-             "use 0 (the fixed background colour) or a number of rows, e.g. 64"),
+            ("background_map", isinstance(self.background_map, int) and not isinstance(self.background_map, bool)
+             and self.background_map >= 0, "use 0 (the fixed background colour) or a number of rows, e.g. 1"),
             ("render_stop_eps", 0.0 <= self.render_stop_eps < 1.0, "use a value in [0, 1), e.g. 1e-4"),
             ("render_round_samples", self.render_round_samples >= 1, "use 1 or more, e.g. 32"),
             ("render_phases", isinstance(self.render_phases, int) and self.render_phases >= 1, "use 1 or more, e.g. 2"),

@@ -1,10 +1,11 @@
-"""A learned background for unbounded scenes: a colour per viewing direction (pure functions).
+"""A learned background: a colour per ray direction, for what a ray meets after everything a grid holds (pure functions).
 
-What a ray meets after the whole contracted space is, in the limit, a function of its direction alone
-(NeRF++'s and nerfstudio's view of the far field: at infinity every camera sees the same thing along a
-direction). Stored as an equirectangular table, ``(C, H, W)``: row ``i`` is latitude
-``(i + 0.5) / H * pi - pi / 2`` (``-pi/2`` looking along ``-z``), column ``j`` longitude
-``(j + 0.5) / W * 2 pi - pi`` (``atan2(y, x)``), looked up bilinearly, wrapping round in longitude and
+Beyond an unbounded scene's contracted space, what a ray meets is in the limit a function of its direction alone
+(NeRF++'s view of the far field: at infinity every camera sees the same thing along a direction); the voxel grid
+also uses it past a forward-facing scene's NDC far plane, indexed there by the NDC direction
+(:class:`~nerfmeta.fields.voxel_grid.VoxelGridConfig` ``background_map``). Stored as an equirectangular table,
+``(C, H, W)``: row ``i`` is latitude ``(i + 0.5) / H * pi - pi / 2`` (``-pi/2`` looking along ``-z``), column ``j``
+longitude ``(j + 0.5) / W * 2 pi - pi`` (``atan2(y, x)``), looked up bilinearly, wrapping round in longitude and
 clamped at the poles.
 """
 
