@@ -939,7 +939,10 @@ class VoxelGrid(RadianceModel):
 
     def render_plan(self, rays: RayBatch, plan: SamplingPlan, *, background: torch.Tensor, train: bool = False,
                     view_dirs: torch.Tensor | None = None) -> RenderOutput:
-        """The shared render, with the learned background table (``background_map``) added to ``background``."""
+        """The shared render, with the learned background table (``background_map``) added to ``background`` (the fixed
+        colour, or a training ray's random one under ``FitConfig.random_background``) and the sum clamped to [0, 1]. A
+        render of several marches (``render_phases``) looks the table up once a march: a few operations a ray against
+        the march's hundred-odd samples, not worth threading the colour past the base class's render."""
         if "background_map" in self._parameters:
             background = (background + equirect_lookup(self.background_map, rays.directions)).clamp(0.0, 1.0)
         return super().render_plan(rays, plan, background=background, train=train, view_dirs=view_dirs)

@@ -125,7 +125,10 @@ class FitConfig:
     and 0.6 dB with it 64 across (its steps slower: 1602 in 120 s against 3000 in 87 s); on unbounded captures a
     generated room gained 0.9 dB and beer lost 6.6 (its far railings and walls, which the white had stood in for,
     smeared over the contracted shell's coarse far voxels). Never for scenes with alpha (their targets were composited
-    on ``background``)."""
+    on ``background``). Those figures were measured on the fixed white, before the grid learned a background colour on
+    forward-facing and unbounded scenes (``VoxelGridConfig.background_map``, session 48): with that table, as by
+    default there now, it is added to each training ray's random colour as it is to ``background`` (the sum clamped
+    to [0, 1]); the two together have not been measured."""
     guard: GuardConfig = GuardConfig()
     """Divergence guard: on a NaN/inf or exploding step, roll back, lower the learning rates and retry (see nerfmeta.fit.guard)."""
 
