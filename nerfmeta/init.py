@@ -98,7 +98,7 @@ def load_init(folder: str | os.PathLike, *, expect_kind: str | None = None) -> S
     check_sha256(weights, doc.get("sha256"), index, "the file is corrupted or was replaced")
     try:
         config = config_from_dict(backbone, values)
-    except (TypeError, ValueError) as err:
+    except (ConfigError, TypeError, ValueError) as err:
         raise ConfigError(f"{index}: model_config is not a valid {backbone} configuration ({err})") from None
     try:
         state = load_tensors(weights)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -209,6 +210,22 @@ def test_backbone_configs_refuse_nonfinite_rates_from_json_too():
         config_from_dict("grid", {"lr_features": float("inf")})
     with pytest.raises(ConfigError, match="lr=nan"):
         config_from_dict("nerf", {"lr": float("nan")})
+
+
+@pytest.mark.parametrize("backbone,values,needle", [
+    ("grid", {"render_phases": True}, "grid config render_phases=True: expected int"),  # a bool is no count
+    ("grid", {"stepsize": "0.5"}, "grid config stepsize='0.5': expected float"),
+    ("grid", {"growth_steps": [100, "x"]}, "expected tuple[int, ...]"),
+    ("grid", {"feature_dim": 2.5}, "grid config feature_dim=2.5: expected int"),
+    ("sdf", {"width": True}, "sdf config width=True: expected int"),
+    ("nerf", {"skips": ["4"]}, "nerf config skips=('4',): expected tuple[int, ...]"),
+])
+def test_backbone_configs_refuse_wrong_types_from_json(backbone, values, needle):
+    from nerfmeta.fields.registry import config_from_dict
+
+    with pytest.raises(ConfigError, match=re.escape(needle)) as err:
+        config_from_dict(backbone, values)  # a hand-edited config.json or init.json: one line, not a TypeError
+    assert "\n" not in str(err.value)
 
 
 def test_fit_help_documents_every_backbone_field():

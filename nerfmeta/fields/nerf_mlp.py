@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerfmeta.config import check_fields
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
@@ -80,6 +81,7 @@ class NerfMLPConfig(EncodingChoice):
     """``occupancy``: drop samples whose transmittance in front is below this (0: off)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "nerf config")  # types first, then the ranges below
         # JSON has no tuples: accept a list for ``skips`` so a saved config loads back equal.
         object.__setattr__(self, "skips", tuple(int(s) for s in self.skips))
         checks = (

@@ -43,6 +43,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerfmeta.config import check_fields
 from nerfmeta.data.scene import RayBatch
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent, photometric_mse
@@ -233,6 +234,7 @@ class SdfConfig(EncodingChoice):
     """Steps over which NeuS's cos anneal goes from soft to exact (:func:`annealed_cos`; 0: exact from the start)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "sdf config")  # types first, then the ranges below
         checks = (
             ("pos_freqs", self.pos_freqs >= 0), ("dir_freqs", self.dir_freqs >= 0), ("color_pos_freqs", self.color_pos_freqs >= 0),
             ("color_grid", self.color_grid == 0 or self.color_grid >= 2), ("color_grid_dim", self.color_grid_dim >= 1),

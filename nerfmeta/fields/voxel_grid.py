@@ -71,6 +71,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerfmeta.config import check_fields
 from nerfmeta.data.scene import RayBatch, Scene
 from nerfmeta.errors import ConfigError
 from nerfmeta.fields.base import Decision, Layer, MetaHints, ParamGroup, RadianceModel, RenderOutput, SamplingPlan, StepEvent
@@ -346,6 +347,7 @@ class VoxelGridConfig:
     """Learning rate of the background table (``background_map`` > 0)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "grid config")  # types first (a bool is no count, a string no step), then the ranges below
         # JSON has no tuples: accept a list for ``growth_steps`` so a saved config loads back equal.
         object.__setattr__(self, "growth_steps", tuple(int(s) for s in self.growth_steps))
         object.__setattr__(self, "inner_box", tuple(float(v) for v in self.inner_box))
@@ -382,11 +384,10 @@ class VoxelGridConfig:
             ("inner_box", len(self.inner_box) == 0 or (len(self.inner_box) == 4 and self.inner_box[3] > 0),
              "use [] (from the cameras) or [x, y, z, half_side] with half_side > 0"),
             ("shell", 0.0 < self.shell < math.inf, "use a positive width, e.g. 1"),
-            ("background_map", isinstance(self.background_map, int) and not isinstance(self.background_map, bool)
-             and self.background_map >= 0, "use 0 (the fixed background colour) or a number of rows, e.g. 1"),
+            ("background_map", self.background_map >= 0, "use 0 (the fixed background colour) or a number of rows, e.g. 1"),
             ("render_stop_eps", 0.0 <= self.render_stop_eps < 1.0, "use a value in [0, 1), e.g. 1e-4"),
             ("render_round_samples", self.render_round_samples >= 1, "use 1 or more, e.g. 32"),
-            ("render_phases", isinstance(self.render_phases, int) and self.render_phases >= 1, "use 1 or more, e.g. 2"),
+            ("render_phases", self.render_phases >= 1, "use 1 or more, e.g. 2"),
         )
         for name, ok, hint in checks:
             if not ok:
