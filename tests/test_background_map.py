@@ -16,7 +16,7 @@ from nerfmeta.fields.voxel_grid import VoxelGrid, VoxelGridConfig
 from nerfmeta.fit.run import RunConfig
 from nerfmeta.fit.sampler import fit_space, view_rays
 from nerfmeta.io import to_jsonable
-from nerfmeta.render.background import equirect_coords, equirect_lookup
+from nerfmeta.render.background import clamp_inward, equirect_coords, equirect_lookup
 
 SMALL = VoxelGridConfig(coarse_iters=30, coarse_num_voxels=16**3, num_voxels=24**3, growth_steps=(20,),
                         occupancy_every=10, mlp_width=16, feature_dim=4)
@@ -33,6 +33,39 @@ def _table(h: int = 4, w: int = 8) -> torch.Tensor:
     cols = torch.arange(w, dtype=torch.float64).expand(h, w)
     rows = torch.arange(h, dtype=torch.float64)[:, None].expand(h, w)
     return torch.stack([cols, 10.0 * rows])
+
+
+def test_inward_clamp_is_a_clamp_whose_gradient_only_brings_values_back():
+    x = torch.tensor([-0.5, -0.5, 0.0, 0.3, 1.0, 1.5, 1.5], dtype=torch.float64, requires_grad=True)
+    upstream = torch.tensor([-1.0, 1.0, 1.0, 2.0, -1.0, 1.0, -1.0], dtype=torch.float64)
+    out = clamp_inward(x)
+    assert torch.equal(out, x.detach().clamp(0.0, 1.0))
+    out.backward(upstream)
+    # inside (ends included) the identity; outside, only a gradient whose descent step points back in
+    assert x.grad.tolist() == [-1.0, 0.0, 1.0, 2.0, -1.0, 1.0, 0.0]
+
+
+@pytest.mark.parametrize("clamp,recovers", [(lambda v: v.clamp(0.0, 1.0), False), (clamp_inward, True)])
+def test_a_colour_pushed_below_black_comes_back_only_through_the_inward_clamp(clamp, recovers):
+    # A channel that overshot 0 (as the forward-facing scenes' colour does on its way to black) and a target that
+    # later wants grey: a plain clamp gives it no gradient, so it stays black for ever.
+    value = torch.tensor([-0.5], requires_grad=True)
+    opt = torch.optim.Adam([value], lr=0.05)
+    for _ in range(200):
+        opt.zero_grad()
+        ((clamp(value) - 0.3) ** 2).sum().backward()
+        opt.step()
+    assert (abs(float(clamp(value.detach())) - 0.3) < 0.02) == recovers
+
+
+def test_inward_clamp_does_not_push_a_value_further_out():
+    value = torch.tensor([-0.5], requires_grad=True)
+    opt = torch.optim.Adam([value], lr=0.05)
+    for _ in range(50):
+        opt.zero_grad()
+        ((clamp_inward(value) + 0.2) ** 2).sum().backward()  # the target is below black: black is the best it can do
+        opt.step()
+    assert float(value.detach()) == -0.5
 
 
 def test_texel_centres_give_their_values_exactly():

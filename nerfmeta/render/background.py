@@ -39,3 +39,28 @@ def equirect_lookup(table: torch.Tensor, directions: torch.Tensor) -> torch.Tens
     uv = torch.stack([uv[:, 0] * (w / (w + 2)), uv[:, 1]], dim=-1)
     out = F.grid_sample(wrapped[None], uv[None, :, None], mode="bilinear", padding_mode="border", align_corners=False)
     return out[0, :, :, 0].t()
+
+
+class _InwardClamp(torch.autograd.Function):
+    """``clamp`` in the forward pass; in the backward pass the gradient also reaches values outside the range where a
+    descent step would move them back towards it."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, low: float, high: float) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(x)
+        ctx.low, ctx.high = low, high
+        return x.clamp(low, high)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None, None]:  # type: ignore[override]
+        (x,) = ctx.saved_tensors
+        inside = (x >= ctx.low) & (x <= ctx.high)
+        inward = ((x < ctx.low) & (grad < 0)) | ((x > ctx.high) & (grad > 0))  # descent moves x by -grad
+        return grad * (inside | inward), None, None
+
+
+def clamp_inward(x: torch.Tensor, low: float = 0.0, high: float = 1.0) -> torch.Tensor:
+    """``x.clamp(low, high)`` whose gradient does not die outside the range: a learned colour pushed past 0 or 1 (the
+    table's forward-facing colour goes to black) gets the gradient that would bring it back, and none that would push
+    it further out. Inside the range it is the identity, gradient included."""
+    return _InwardClamp.apply(x, low, high)
