@@ -37,18 +37,19 @@ def test_the_concave_preset_is_the_recipe_the_benchmarks_measured():
     # holdout_tile 0: the 10-minute fits were measured training on every pixel, to their last step
     assert preset.backbone == "sdf" and dict(preset.fit) == {"batch_rays": 512, "lr_decay": 0.3, "holdout_tile": 0.0}
     assert dict(preset.model) == {"view_dependent": False, "init_variance": 0.1, "variance_lr": 1e-2, "color_grid": 64,
-                                  "eikonal_start_weight": 1e-3, "eikonal_ramp": (3500, 5000), "occupancy_margin": 1.0}
+                                  "eikonal_start_weight": 1e-3, "eikonal_ramp": (3500, 5000), "occupancy_margin": 1.0,
+                                  "shell_weight": 5e-3}  # session 49's thin-shell prior (section 23)
 
 
 def test_describe_spells_the_options_a_user_would_type_and_the_readme_shows_them():
     line = describe("concave", get_preset("concave"))
     assert line == ("--preset concave: --backbone sdf --batch-rays 512 --lr-decay 0.3 --holdout-tile 0 --set view_dependent=false "
                     "--set init_variance=0.1 --set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
-                    "--set eikonal_ramp=[3500,5000] --set occupancy_margin=1")
+                    "--set eikonal_ramp=[3500,5000] --set occupancy_margin=1 --set shell_weight=0.005")
     overridden = describe("concave", get_preset("concave"), {"lr_decay", "occupancy_margin", "not_in_the_preset"})
     assert overridden == ("--preset concave: --backbone sdf --batch-rays 512 --holdout-tile 0 --set view_dependent=false --set init_variance=0.1 "
                           "--set variance_lr=0.01 --set color_grid=64 --set eikonal_start_weight=0.001 "
-                          "--set eikonal_ramp=[3500,5000] (--lr-decay, --set occupancy_margin: the options given)")
+                          "--set eikonal_ramp=[3500,5000] --set shell_weight=0.005 (--lr-decay, --set occupancy_margin: the options given)")
     readme = " ".join(README.read_text().split())
     assert "--preset concave" in readme
     assert line.split(": ", 1)[1] in readme  # the README spells out what the preset sets

@@ -433,3 +433,27 @@ def test_stiff_surface_cases_stay_finite(tmp_path):
         assert not r.nan_seen and r.test_psnr is not None and math.isfinite(r.test_psnr), (r.case, r.outcome)
     by_name = {r.case: r for r in results}
     assert abs(by_name["sdf, poses x 1e3"].psnr_gap) < 0.5  # the same fit at 1000x the scale
+
+
+def test_the_thin_shell_term_is_the_samples_inside_probability_and_shrinks_the_solid():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "shell_weight": 0.5}), BOX, seed=0)
+    batch = rays(64)
+    gen = torch.Generator().manual_seed(0)
+    out = model(batch, background=torch.ones(3), train=True, generator=gen, target=batch.target)
+    inside = out.extras["inside"]
+    assert out.losses["shell"].item() == pytest.approx(0.5 * inside.mean().item())
+    assert 0.0 < inside.mean().item() < 1.0  # the rays cross the initial sphere: samples inside and out
+    # the term alone moves the surface into the solid: f rises at the sphere's centre
+    centre = torch.zeros(1, 3)
+    before = model.sdf_and_feature(model.to_box(centre))[0].item()
+    opt = torch.optim.SGD([p for n, p in model.named_parameters() if n != "variance"], lr=1e-2)
+    for _ in range(20):
+        opt.zero_grad()
+        out = model(batch, background=torch.ones(3), train=True, generator=gen, target=batch.target)
+        out.losses["shell"].backward()
+        opt.step()
+    assert model.sdf_and_feature(model.to_box(centre))[0].item() > before
+    # off by default, and never in a render that does not train
+    assert "shell" not in build_model("sdf", TINY, BOX, seed=0)(batch, background=torch.ones(3), train=True,
+                                                                 generator=gen, target=batch.target).losses
+    assert "inside" not in model(batch, background=torch.ones(3)).extras
