@@ -28,7 +28,8 @@ at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo; option
 ``eikonal_start_weight`` over the steps ``eikonal_ramp`` or the fractions of the fit ``eikonal_ramp_progress``); ``mask``: binary
 cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
 ``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
-``curvature_weight`` (0: off). Gradients are analytic (autograd, second order for the eikonal
+``curvature_weight`` (0: off); ``shell``: the samples' mean inside-probability ``sigmoid(-s f)`` times
+``shell_weight`` (0: off; a thin-shell prior, 0.005 in ``--preset concave``). Gradients are analytic (autograd, second order for the eikonal
 term) or finite differences of step ``numerical_eps`` (Neuralangelo's choice for hash grids,
 whose trilinear gradient jumps at cell faces): ``gradient=auto`` picks numerical for grid encodings.
 """
@@ -529,7 +530,7 @@ class SdfField(RadianceModel):
         return out
 
     def loss_terms(self, out: RenderOutput, target: torch.Tensor) -> dict[str, torch.Tensor]:
-        """``mse``, ``eikonal`` and, when on, ``curvature`` (see the module docstring)."""
+        """``mse``, ``eikonal`` and, when on, ``curvature`` and ``shell`` (see the module docstring)."""
         cfg = self.config
         terms = {"mse": photometric_mse(out.rgb, target)}
         grad = out.extras["grad"]
