@@ -77,7 +77,18 @@ def test_topology_counts_components_and_handles():
     tetra = mesh_topology(TETRA)
     assert (tetra.components, tetra.faces, tetra.genus, tetra.boundary_edges, tetra.nonmanifold_edges) == (1, (4,), (0.0,), 0, 0)
     opened = mesh_topology(Mesh(TETRA.vertices, TETRA.faces[:3]))
-    assert opened.boundary_edges == 3
+    assert (opened.boundary_edges, opened.boundary_loops, opened.genus) == (3, 1, (0.0,))  # a disc, closed: a sphere
+
+
+def test_surfaces_cut_by_the_box_are_closed_along_it():
+    """A marching-cubes mesh opens where the surface leaves the box: each cut counts as closed by a disc, so a
+    torus whose rim pokes through a face keeps genus 1, and one cut across its tube (a C-shaped solid) has 0."""
+    def torus_at(cx):
+        return lambda p: np.hypot(np.hypot(p[..., 0] - cx, p[..., 1]) - 0.55, p[..., 2]) - 0.2
+
+    poked, cut = mesh_topology(lattice_mesh(torus_at(0.3))), mesh_topology(lattice_mesh(torus_at(0.8)))
+    assert poked.boundary_edges > 0 and (poked.components, poked.boundary_loops, poked.genus) == (1, 1, (1.0,))
+    assert (cut.components, cut.boundary_loops, cut.genus) == (1, 2, (0.0,))
 
 
 def test_small_floaters_are_left_out_of_the_main_topology():

@@ -20,7 +20,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "nearest-neighbour distances below --threshold), Chamfer = their mean, F-score at --tolerance and normal "
             "consistency, in the scene file's units and as %% of the ground truth's bounding-box diagonal, beside the "
             "sampling floor (the Chamfer of two samplings of the ground truth: what a perfect surface scores) and the "
-            "mesh's topology (components, genus) and, for a generated scene, how much of its hidden concavity "
+            "mesh's topology (components, genus; a surface cut open by the box counts as closed along it) and, for a generated scene, how much of its hidden concavity "
             "(free space inside every view's silhouette, e.g. a cup's inside) the surface leaves open; for an SDF run, its "
             "signed distance on the true surface (negative: too fat there), overall, on the visual hull (where "
             "silhouettes pin it) and on hidden surface (a cup's inner wall: placed by colour alone). --gt is a "

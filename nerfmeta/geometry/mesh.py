@@ -225,9 +225,12 @@ class MeshTopology:
     Attributes:
         components: number of connected components (sharing vertices).
         faces: (components,) faces per component, largest first.
-        genus: (components,) genus per component, ``(2 - (V - E + F)) / 2`` (a sphere 0, a torus or a
-            mug with a handle 1); meaningful for closed components only.
-        boundary_edges: edges with one face (0 for a closed mesh: the genus is then exact).
+        genus: (components,) genus per component with each boundary loop closed by a disc,
+            ``(2 - (V - E + F) - loops) / 2`` (a sphere 0, a torus or a mug with a handle 1). A marching-cubes
+            mesh of a field is open only where its surface leaves the meshed box; closing each such cut by a
+            disc is closing the solid along the box, so a bulge through a box face does not count as a handle.
+        boundary_edges: edges with one face (0 for a closed mesh).
+        boundary_loops: loops those edges form (connected sets of boundary edges), all components together.
         nonmanifold_edges: edges with more than two faces.
     """
 
@@ -236,6 +239,7 @@ class MeshTopology:
     genus: tuple[float, ...]
     boundary_edges: int
     nonmanifold_edges: int
+    boundary_loops: int = 0
 
     def main(self, min_fraction: float = 0.01) -> tuple[int, float]:
         """Components holding at least ``min_fraction`` of the faces, and their total genus (floaters left out)."""
@@ -245,7 +249,8 @@ class MeshTopology:
 
 
 def mesh_topology(mesh: Mesh) -> MeshTopology:
-    """Components, genus per component and open/non-manifold edge counts of ``mesh`` (vertices welded by index)."""
+    """Components, genus per component (boundary loops closed) and open/non-manifold edge counts of ``mesh``
+    (vertices welded by index)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -262,7 +267,24 @@ def mesh_topology(mesh: Mesh) -> MeshTopology:
     v_count = np.bincount(comp_of_used, minlength=k)
     e_count = np.bincount([index[int(c)] for c in label[unique[:, 0]]], minlength=k) if len(unique) else np.zeros(k, int)
     f_count = np.bincount([index[int(c)] for c in label[faces[:, 0]]], minlength=k) if len(faces) else np.zeros(k, int)
-    genus = (2 - (v_count - e_count + f_count)) / 2.0
+    loops = _boundary_loops(unique[counts == 1], label, index, k)
+    genus = (2 - (v_count - e_count + f_count) - loops) / 2.0
     order = np.argsort(-f_count, kind="stable")
     return MeshTopology(k, tuple(int(f_count[i]) for i in order), tuple(float(genus[i]) for i in order),
-                        int((counts == 1).sum()), int((counts > 2).sum()))
+                        int((counts == 1).sum()), int((counts > 2).sum()), int(loops.sum()))
+
+
+def _boundary_loops(boundary: np.ndarray, label: np.ndarray, index: dict[int, int], k: int) -> np.ndarray:
+    """(k,) loops of boundary edges (B, 2) per mesh component: connected sets of boundary edges."""
+    if len(boundary) == 0:
+        return np.zeros(k, dtype=np.int64)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    verts, local = np.unique(boundary, return_inverse=True)
+    local = local.reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(len(verts), len(verts)))
+    n_loops, loop_of = connected_components(graph, directed=False)
+    first = np.full(n_loops, -1, dtype=np.int64)
+    first[loop_of[::-1]] = verts[::-1]  # any vertex of each loop names its mesh component
+    return np.bincount([index[int(label[v])] for v in first], minlength=k)

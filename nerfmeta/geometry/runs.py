@@ -49,7 +49,8 @@ def topology_summary(mesh: Mesh) -> dict[str, Any]:
     topo = mesh_topology(mesh)
     main, genus = topo.main()
     return {"components": topo.components, "main_components": main, "main_genus": genus,
-            "boundary_edges": topo.boundary_edges, "nonmanifold_edges": topo.nonmanifold_edges}
+            "boundary_edges": topo.boundary_edges, "boundary_loops": topo.boundary_loops,
+            "nonmanifold_edges": topo.nonmanifold_edges}
 
 
 def fit_geometry(model: RadianceModel, scene: Any, config: GeometryConfig = FIT_GEOMETRY) -> dict[str, Any] | None:
