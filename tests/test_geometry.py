@@ -127,6 +127,7 @@ def test_a_fit_on_a_generated_scene_reports_geometry_and_eval_geometry_agrees(mu
     assert doc["topology"]["components"] >= doc["topology"]["main_components"] >= 1
     assert doc["concavity"]["hidden_fraction"] > 0 and 0 <= doc["concavity"]["carved"] <= 1
     assert set(doc["surface_offset"]) <= {"all", "on_hull", "hidden"} and doc["surface_offset"]["all"]["share"] == 1.0
+    assert 0.2 < doc["grad_norm"] < 5.0  # an SDF just out of its sphere init
     assert geometry["floor_pct_diagonal"] > 0 and geometry["topology"]["main_components"] >= 1
     # against its own mesh, the run's surface is far closer than against the truth
     assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "32"]) == 0
@@ -251,3 +252,23 @@ def test_surface_offsets_read_a_uniform_shift_everywhere_and_split_the_cup_from_
     for part in ("all", "on_hull", "hidden"):
         assert abs(exact[part]["mean"]) < 1e-4 and fat[part]["mean"] == pytest.approx(-0.01, abs=1e-4)
     assert surface_offsets(torch.nn.Module(), scene, gt) is None  # no SDF, no figure
+
+
+def test_surface_gradient_norm_is_one_for_a_distance_and_scales_with_the_field(mug_scene):
+    """The exact SDF (through the loaded frame's scale) reads 1 on its own surface; twice it reads 2; no SDF, None."""
+    from nerfmeta.data.registry import load_scene
+    from nerfmeta.geometry.concavity import surface_gradient_norm
+    from nerfmeta.geometry.truth import ground_truth, scene_sdf_of
+
+    scene = load_scene(mug_scene)
+    sdf, _ = scene_sdf_of(mug_scene)
+    norm = scene.normalization
+    gt = ground_truth(mug_scene, 2000)
+    offset = torch.as_tensor(norm.offset, dtype=torch.float64)
+
+    def truth_loaded(p):
+        return (sdf((p.double() - offset) / float(norm.scale)) * float(norm.scale)).float()
+
+    assert surface_gradient_norm(_StubSdf(truth_loaded), scene, gt) == pytest.approx(1.0, abs=0.01)
+    assert surface_gradient_norm(_StubSdf(lambda p: 2.0 * truth_loaded(p)), scene, gt) == pytest.approx(2.0, abs=0.02)
+    assert surface_gradient_norm(torch.nn.Module(), scene, gt) is None

@@ -23,7 +23,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             "mesh's topology (components, genus; a surface cut open by the box counts as closed along it) and, for a generated scene, how much of its hidden concavity "
             "(free space inside every view's silhouette, e.g. a cup's inside) the surface leaves open; for an SDF run, its "
             "signed distance on the true surface (negative: too fat there), overall, on the visual hull (where "
-            "silhouettes pin it) and on hidden surface (a cup's inner wall: placed by colour alone). --gt is a "
+            "silhouettes pin it) and on hidden surface (a cup's inner wall: placed by colour alone), and its mean "
+            "|grad f| there (grad_norm: 1 for a signed distance). --gt is a "
             "generated scene (its exact SDF, sampled on the zero level set) or a PLY/OBJ mesh."
         ),
     )
@@ -35,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nerfmeta.geometry.concavity import concavity_figures, surface_offsets
+    from nerfmeta.geometry.concavity import concavity_figures, surface_gradient_norm, surface_offsets
     from nerfmeta.geometry.load import load_run_model
     from nerfmeta.geometry.runs import evaluate_mesh, mesh_in_file_frame, topology_summary
     from nerfmeta.geometry.truth import ground_truths, scene_sdf_of
@@ -56,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     offsets = surface_offsets(model, scene, gt)
     if offsets is not None:
         doc["surface_offset"] = offsets
+    grad_norm = surface_gradient_norm(model, scene, gt)
+    if grad_norm is not None:
+        doc["grad_norm"] = grad_norm
     if json_out is not None:
         write_output_json(json_out, doc, option="--json-out")
     json.dump(doc, sys.stdout, indent=2)

@@ -12,7 +12,8 @@ A cup carved open can still be carved too little: its inner wall too thick. Cham
 error lies, nor which way, so :func:`surface_offsets` reads a fitted SDF at points of the true surface (its
 signed distance there: negative where the fit is too fat, its surface outside the truth) and splits them in
 two: surface on the visual hull (silhouettes see it, so the mask pins it) and hidden surface (a cup's
-inner wall and inner bottom: only the photometric loss places it).
+inner wall and inner bottom: only the photometric loss places it). :func:`surface_gradient_norm` reads the same
+points for whether the fit is still a signed distance there (mean ``|grad f|`` near 1).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from typing import Any, Callable
 
 import torch
 
-from nerfmeta.fields.base import RadianceModel
+from nerfmeta.fields.base import RadianceModel, module_device
 from nerfmeta.geometry.extract import surface_function
 from nerfmeta.geometry.truth import SurfaceSamples
 from nerfmeta.priors.carve import visual_hull
@@ -145,3 +146,22 @@ def surface_offsets(model: RadianceModel, scene: Any, gt: SurfaceSamples, *, n_p
         offsets = torch.cat([sdf(p) for p in loaded.split(65536)]).double() / float(norm.scale)
     figures = offset_figures(offsets, {"on_hull": ~in_hull, "hidden": in_hull}, diagonal)
     return {name: asdict(f) for name, f in figures.items()}
+
+
+def surface_gradient_norm(model: RadianceModel, scene: Any, gt: SurfaceSamples, *, n_points: int = 20_000) -> float | None:
+    """Mean ``|grad f|`` of a fitted SDF at the first ``n_points`` points of the true surface (1 for a signed distance).
+
+    The gradient of ``sdf_world`` by autograd in the loaded frame: a uniform scale of the scene changes
+    distances and lengths alike, so the figure is unitless. None for a model without ``sdf_world``.
+    """
+    if not hasattr(model, "sdf_world"):
+        return None
+    loaded = scene.normalization.apply_points(torch.as_tensor(gt.points[:n_points], dtype=torch.float64))
+    device = module_device(model)
+    norms = []
+    for chunk in loaded.to(scene.bounds.dtype).split(8192):
+        p = chunk.to(device).requires_grad_(True)
+        with torch.enable_grad():
+            (grad,) = torch.autograd.grad(model.sdf_world(p).sum(), p)
+        norms.append(grad.detach().norm(dim=-1).double().cpu())
+    return float(torch.cat(norms).mean())
