@@ -284,7 +284,6 @@ def _boundary_loops(boundary: np.ndarray, label: np.ndarray, index: dict[int, in
     verts, local = np.unique(boundary, return_inverse=True)
     local = local.reshape(-1, 2)
     graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(len(verts), len(verts)))
-    n_loops, loop_of = connected_components(graph, directed=False)
-    first = np.full(n_loops, -1, dtype=np.int64)
-    first[loop_of[::-1]] = verts[::-1]  # any vertex of each loop names its mesh component
-    return np.bincount([index[int(label[v])] for v in first], minlength=k)
+    _, loop_of = connected_components(graph, directed=False)
+    _, first = np.unique(loop_of, return_index=True)  # one vertex of each loop names its mesh component
+    return np.bincount([index[int(label[v])] for v in verts[first]], minlength=k)
