@@ -53,6 +53,18 @@ def test_outliers_beyond_the_threshold_are_dropped_from_accuracy_only():
     pred = np.concatenate([p, [[10.0, 0.0, 0.0]]])
     m = compare_surfaces(pred, p, threshold=0.05, tolerance=0.01)
     assert m.accuracy == 0.0 and m.precision == pytest.approx(1000 / 1001)
+    assert m.outliers_pred == pytest.approx(1 / 1001) and m.outliers_gt == 0.0  # what the Chamfer left out, said
+
+
+def test_a_part_moved_beyond_the_threshold_leaves_the_chamfer_and_shows_in_the_outlier_shares():
+    """A sphere's top fifth (z > 0.6) lifted far away: the Chamfer drops it (DTU), the outlier shares name it."""
+    p, _ = sphere_points(4000, 1.0)
+    cap = p[:, 2] > 0.6
+    moved = p + np.where(cap[:, None], [0.0, 0.0, 3.0], 0.0)
+    m = compare_surfaces(moved, p, threshold=0.05, tolerance=0.01)
+    assert m.accuracy == 0.0 and m.completeness < 0.01 * m.diagonal  # the Chamfer barely sees it ...
+    assert m.outliers_pred == pytest.approx(cap.mean())  # ... the shares do: every lifted sample,
+    assert 0.11 < m.outliers_gt < 0.16  # and the true cap farther than 5 % of the diagonal from what is left (z > ~0.73: 13.6 %)
 
 
 def test_exact_sdf_samples_lie_on_the_surface_with_radial_normals():

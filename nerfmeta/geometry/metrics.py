@@ -7,6 +7,9 @@ With ``d(p, Q)`` the distance from ``p`` to the nearest point of ``Q`` (a k-d tr
   farther outliers: its ``max_dist``, 20 mm there);
 - completeness = mean of ``d(g, P)`` over the ``g`` in ``G`` with ``d(g, P) < threshold``;
 - Chamfer = (accuracy + completeness) / 2;
+- outliers_pred / outliers_gt = fraction of ``P`` / ``G`` that accuracy / completeness left out (farther than
+  ``threshold``): read them beside the Chamfer, which says nothing of a part of the surface put wholly elsewhere (a
+  cup's floor fitted a fifth of the diagonal too high scores as if it were missing, not as an error);
 - precision / recall = fraction of ``P`` / ``G`` within ``tolerance`` of the other; F-score their
   harmonic mean (Tanks and Temples);
 - normal consistency = mean of ``|n_p . n_nearest|`` over both directions (Occupancy Networks).
@@ -64,6 +67,8 @@ class GeometryMetrics:
     diagonal: float
     n_pred: int
     n_gt: int
+    outliers_pred: float
+    outliers_gt: float
     floor_pct_diagonal: float | None = None
 
 
@@ -106,7 +111,8 @@ def compare_surfaces(pred: np.ndarray, gt: np.ndarray, *, pred_normals: np.ndarr
                     + float(np.abs(np.sum(gt_normals * pred_normals[i_gt], -1)).mean()))
     chamfer = 0.5 * (acc + comp)
     return GeometryMetrics(acc, comp, chamfer, 100.0 * chamfer / diagonal, precision, recall, fscore, nc,
-                           max_dist, tol, diagonal, len(pred), len(gt))
+                           max_dist, tol, diagonal, len(pred), len(gt),
+                           float((d_pred >= max_dist).mean()), float((d_gt >= max_dist).mean()))
 
 
 def sampling_floor(gt: np.ndarray, twin: np.ndarray, *, threshold: float = 0.05, tolerance: float = 0.01) -> float:
