@@ -457,3 +457,21 @@ def test_the_thin_shell_term_is_the_samples_inside_probability_and_shrinks_the_s
     assert "shell" not in build_model("sdf", TINY, BOX, seed=0)(batch, background=torch.ones(3), train=True,
                                                                  generator=gen, target=batch.target).losses
     assert "inside" not in model(batch, background=torch.ones(3)).extras
+
+
+def test_the_shell_prior_fades_out_over_its_fractions_of_the_fit():
+    model = build_model("sdf", SdfConfig(**{**TINY.__dict__, "shell_weight": 0.5, "shell_fade_progress": (0.5, 0.75)}), BOX, seed=0)
+    batch = rays(64)
+    weights, terms = [], []
+    for progress in (0.0, 0.5, 0.625, 0.75, 1.0):
+        model.begin_step(100, progress)
+        out = model(batch, background=torch.ones(3), train=True, generator=torch.Generator().manual_seed(0), target=batch.target)
+        weights.append(model.shell_now)
+        terms.append(out.losses["shell"].item() / model.shell_now if "shell" in out.losses else None)
+    assert weights == pytest.approx([0.5, 0.5, 0.25, 0.0, 0.0])
+    assert terms[0] == pytest.approx(terms[2], rel=1e-6) and terms[3:] == [None, None]  # the weight moves, not the term; at 0 no term
+    model.begin_step(100, None)  # stepped without a planned end: the prior as set
+    assert model.shell_now == 0.5
+    for fade in ((0.8, 0.6), (0.5, 1.5), (0.5,)):
+        with pytest.raises(ConfigError, match="shell_fade_progress"):
+            SdfConfig(shell_fade_progress=fade)

@@ -29,7 +29,7 @@ at the samples times ``eikonal_weight`` (0.1, as IDR, NeuS, Neuralangelo; option
 cross-entropy of the opacity against the scene's alpha (when the rays carry one) times
 ``mask_weight``; ``curvature``: the mean absolute Laplacian of ``f`` (Neuralangelo) times
 ``curvature_weight`` (0: off); ``shell``: the samples' mean inside-probability ``sigmoid(-s f)`` times
-``shell_weight`` (0: off; a thin-shell prior, 0.005 in ``--preset concave``). Gradients are analytic (autograd, second order for the eikonal
+``shell_weight`` (0: off; a thin-shell prior, 0.005 in ``--preset concave``; optionally faded out over ``shell_fade_progress``). Gradients are analytic (autograd, second order for the eikonal
 term) or finite differences of step ``numerical_eps`` (Neuralangelo's choice for hash grids,
 whose trilinear gradient jumps at cell faces): ``gradient=auto`` picks numerical for grid encodings.
 """
@@ -215,9 +215,17 @@ class SdfConfig(EncodingChoice):
     inside-probability ``sigmoid(-s f)`` (``s`` held), which moves a surface the photos barely place (a plain cup's inner
     wall) towards the inside of the solid, while the photos and the mask hold the rest. 0.005 in ``--preset concave``:
     at 15000 steps three generated mugs read 0.245 / 0.300 / 0.311 % Chamfer against 0.695 / 0.959 / 0.390 % without
-    it, their inner walls within 0.36 % of the truth; 0.01 thinned the cups' plain floors (BENCHMARKS.md,
-    *Surfaces: carving concavities*, section 23). It thins thin parts too: a chair's 10-minute fit read 0.318 % with
-    it against 0.131 % without (section 24), so only the concave preset sets it."""
+    it, their inner walls within 0.36 % of the truth (BENCHMARKS.md, *Surfaces: carving concavities*, section 23). It
+    empties any solid no photo asks for: under a cup carved only to a false floor, everything below it (section 25). It
+    thins thin parts too: a chair's 10-minute fit read 0.318 % with it against 0.131 % without (section 24), so only
+    the concave preset sets it."""
+    shell_fade_progress: tuple[float, float] = (0.0, 0.0)
+    """The shell prior's fade as fractions ``[start, end]`` of the fit (as ``eikonal_ramp_progress``): ``shell_weight``
+    until ``start``, then linear to 0 at ``end`` (end 0: no fade). The prior pushes every surface a little inwards, the
+    ones the photos hold too; without it late in the fit they go back. Measured on a plain mug with ``[0.6, 0.85]``: the
+    outside back on the truth and up to +1.7 dB, but the inner wall thick again and the Chamfer worse (0.46-0.70 %
+    against 0.40-0.52 %; BENCHMARKS.md, *Surfaces: carving concavities*, section 25), so no preset sets it. A model
+    stepped without a planned end keeps ``shell_weight``."""
     occupancy: bool = True
     """Skip empty space with the shared occupancy grid, refreshed from |sdf| after the warm-up."""
     occupancy_resolution: int = 64
@@ -260,6 +268,8 @@ class SdfConfig(EncodingChoice):
              or self.eikonal_ramp[1] > 0 or self.eikonal_ramp_progress[1] > 0.0),
             ("mask_weight", self.mask_weight >= 0.0), ("curvature_weight", self.curvature_weight >= 0.0),
             ("shell_weight", self.shell_weight >= 0.0),
+            ("shell_fade_progress", len(self.shell_fade_progress) == 2
+             and 0.0 <= self.shell_fade_progress[0] <= self.shell_fade_progress[1] <= 1.0),
             ("occupancy_resolution", self.occupancy_resolution >= 2), ("occupancy_margin", self.occupancy_margin > 0.0), ("occupancy_every", self.occupancy_every >= 1),
             ("occupancy_reach", self.occupancy_reach >= 0.0), ("occupancy_full_every", self.occupancy_full_every >= 1),
             ("occupancy_warmup", self.occupancy_warmup >= 0), ("lr", 0.0 < self.lr < math.inf),
@@ -346,6 +356,8 @@ class SdfField(RadianceModel):
         """Fraction of the cos anneal done: set by :meth:`begin_step` (a fit), 1 for a model no fit steps (loaded, meta-learned)."""
         self.eikonal_now = config.eikonal_weight
         """The eikonal weight of the current step (:func:`ramped_weight`): set by :meth:`begin_step` (a fit), the final weight for a model no fit steps (meta-learned, pretrained), as the cos anneal."""
+        self.shell_now = config.shell_weight
+        """The shell prior's weight of the current step (``shell_fade_progress``): set by :meth:`begin_step`."""
 
     def _geometric_init(self, in_dim: int) -> None:
         """SAL/IDR's geometric initialisation: the SDF starts as a sphere of radius ``init_radius``.
@@ -517,7 +529,7 @@ class SdfField(RadianceModel):
         extras = {"grad": ev.grad}
         if ev.laplacian is not None:
             extras["laplacian"] = ev.laplacian
-        if train and self.config.shell_weight > 0.0:
+        if train and self.shell_now > 0.0:
             extras["inside"] = torch.sigmoid(-inv_s.detach() * ev.sdf)
         return RenderOutput(rgb=comp.rgb, acc=comp.acc, depth=comp.depth, samples_evaluated=len(samples), extras=extras)
 
@@ -541,17 +553,19 @@ class SdfField(RadianceModel):
         if "laplacian" in out.extras and out.extras["laplacian"].shape[0]:
             terms["curvature"] = cfg.curvature_weight * out.extras["laplacian"].abs().mean()
         if "inside" in out.extras and out.extras["inside"].shape[0]:
-            terms["shell"] = cfg.shell_weight * out.extras["inside"].mean()
+            terms["shell"] = self.shell_now * out.extras["inside"].mean()
         return terms
 
     # -- structure -----------------------------------------------------------------------------
 
     def begin_step(self, step: int, progress: float | None) -> StepEvent:
-        """Advance the cos anneal and the eikonal ramp; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
+        """Advance the cos anneal, the eikonal ramp and the shell fade; refresh the occupancy grid every ``occupancy_every`` steps after the warm-up:
         a corner is occupied when the surface may be within ``occupancy_margin`` cells (``|f| < margin cells + a marching step``)."""
         cfg = self.config
         self.cos_anneal_ratio = min(1.0, step / cfg.cos_anneal_iters) if cfg.cos_anneal_iters else 1.0
         self.eikonal_now = self._eikonal_weight_at(step, progress)
+        fade = cfg.shell_fade_progress
+        self.shell_now = cfg.shell_weight if fade[1] <= 0.0 or progress is None else ramped_weight(progress, cfg.shell_weight, 0.0, fade)
         if not cfg.occupancy or step < cfg.occupancy_warmup or (step - cfg.occupancy_warmup) % cfg.occupancy_every:
             return StepEvent()
         self._refresh_occupancy()
