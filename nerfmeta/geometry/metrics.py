@@ -9,7 +9,7 @@ With ``d(p, Q)`` the distance from ``p`` to the nearest point of ``Q`` (a k-d tr
 - Chamfer = (accuracy + completeness) / 2;
 - outliers_pred / outliers_gt = fraction of ``P`` / ``G`` that accuracy / completeness left out (farther than
   ``threshold``): read them beside the Chamfer, which says nothing of a part of the surface put wholly elsewhere (a
-  cup's floor fitted a fifth of the diagonal too high scores as if it were missing, not as an error);
+  cup's floor fitted a fifth of the diagonal too high drops out of both means instead of counting as an error);
 - precision / recall = fraction of ``P`` / ``G`` within ``tolerance`` of the other; F-score their
   harmonic mean (Tanks and Temples);
 - normal consistency = mean of ``|n_p . n_nearest|`` over both directions (Occupancy Networks).
